@@ -1,0 +1,33 @@
+# Each target sets itself up on a fresh machine that has only Python 3.11 and pip.
+PYTHON ?= python3.11
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+
+.PHONY: run test venv data bench clean
+
+$(STAMP): pyproject.toml
+	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found; install Python 3.11 or run 'make PYTHON=python3 ...'" >&2; exit 2; }
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet -e '.[test]'
+	@touch $(STAMP)
+
+venv: $(STAMP)
+
+# The main job: the shipped synthetic data in data/synthetic/ analysed end to end.
+run: $(STAMP)
+	$(BIN)/python -m ptrack.mainjob
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q tests
+
+# Regenerate data/synthetic/ (deterministic: fixed seeds).
+data: $(STAMP)
+	$(BIN)/python -m sim.render.datasets --out data/synthetic
+
+bench: $(STAMP)
+	@for f in bench/bench_*.py; do echo "== $$f"; $(BIN)/python $$f || exit $$?; done
+
+clean:
+	rm -rf $(VENV) build *.egg-info

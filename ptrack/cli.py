@@ -1,0 +1,104 @@
+"""The ``ptrack`` command line: one subcommand per task.
+
+Each subcommand lives in its own module exposing ``add_arguments(parser)`` and
+``run(args) -> int``; it is imported only when invoked, so ``ptrack --help``
+and small commands start fast. A :class:`~ptrack.errors.UserError` raised
+anywhere becomes one line on stderr and exit status 2.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from . import __version__
+from .errors import EXIT_USER_ERROR, UserError
+
+# name -> (module, one-line help)
+COMMANDS = {
+    "msd": ("ptrack.commands.msd_cmd", "MSD and diffusion coefficients of a trajectories table"),
+    "wall": ("ptrack.commands.wall_cmd", "hindered diffusion near a wall: ratios for a height, or the height for a ratio"),
+    "track": ("ptrack.commands.track", "microscope TIFF series -> trajectories table (2D, or 3D with a calibration stack)"),
+    "analyze": ("ptrack.commands.analyze", "track + MSD + Stokes-Einstein + wall correction, with plots and a summary"),
+    "simulate": ("ptrack.commands.simulate", "run a simulation scene (TOML) and stream its trajectories"),
+    "study": (None, "verification studies of the simulator (see 'ptrack study --help')"),
+    "render": ("ptrack.commands.render", "render a trajectories table as a synthetic microscope movie"),
+    "render-calibration": ("ptrack.commands.render_calibration", "render a defocus calibration stack"),
+}
+
+# study name -> (module, one-line help)
+STUDIES = {
+    "diffusion": ("sim.studies.diffusion", "Brownian diffusion vs Stokes-Einstein (seed Table 3.1)"),
+    "electrophoresis": ("sim.studies.electrophoresis", "terminal velocity vs Henry's law (seed Table 3.2)"),
+    "deposition": ("sim.studies.deposition", "the seed's deposition examples 1-3"),
+    "hamaker": ("sim.studies.hamaker", "deposited number per area vs Hamaker's law"),
+    "epd-order": ("sim.studies.epd_order", "deposit order vs Peclet number and Debye length"),
+}
+
+
+def _top_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="ptrack",
+        description="Particle tracking of colloids and a simulator of field-driven deposition. SI units in files and options.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="commands:\n" + "\n".join(f"  {k:<20s}{v[1]}" for k, v in COMMANDS.items())
+        + "\n\n'ptrack COMMAND --help' describes a command.",
+    )
+    p.add_argument("--version", action="version", version=f"ptrack {__version__}")
+    p.add_argument("command", nargs="?", help="one of the commands below")
+    return p
+
+
+def _sub_parser(prog: str, module, help_text: str) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=prog, description=(module.__doc__ or help_text).strip().split("\n\n")[0])
+    module.add_arguments(p)
+    return p
+
+
+def _load(modname: str, what: str):
+    try:
+        return importlib.import_module(modname)
+    except ModuleNotFoundError as exc:
+        if exc.name and modname.startswith(exc.name):
+            raise UserError(f"'{what}' is not available in this build ({modname} missing)", "update ptrack")
+        raise
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    top = _top_parser()
+    if not argv or argv[0] in ("-h", "--help", "--version"):
+        top.parse_args(argv)
+        top.print_help()
+        return 0
+    name, rest = argv[0], argv[1:]
+    try:
+        if name not in COMMANDS:
+            raise UserError(f"unknown command '{name}'", "run 'ptrack --help' for the list")
+        if name == "study":
+            if not rest or rest[0] in ("-h", "--help"):
+                print("usage: ptrack study NAME [options]\n\nstudies:")
+                for k, v in STUDIES.items():
+                    print(f"  {k:<18s}{v[1]}")
+                return 0
+            sname, rest = rest[0], rest[1:]
+            if sname not in STUDIES:
+                raise UserError(f"unknown study '{sname}'", f"choose one of: {', '.join(STUDIES)}")
+            modname, help_text = STUDIES[sname]
+            prog = f"ptrack study {sname}"
+        else:
+            modname, help_text = COMMANDS[name]
+            prog = f"ptrack {name}"
+        module = _load(modname, prog)
+        args = _sub_parser(prog, module, help_text).parse_args(rest)
+        return int(module.run(args) or 0)
+    except UserError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except KeyboardInterrupt:
+        print("error: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,3 @@
+"""sim: discrete-element / Langevin simulator of charged colloids driven by an
+electric field through a fluid onto a substrate, its verification studies, and
+a synthetic-microscope renderer. SI units throughout."""
