@@ -1,0 +1,237 @@
+"""The simulation loop: scene -> integrator -> trajectories streamed to Parquet.
+
+:func:`run_scene` builds the particles of a scene, picks (or checks) the
+integrator and time step, writes ``scene.json`` (the resolved scene, the
+integrator, dt and why) and streams the trajectories table
+(frame, t, particle, x, y, z, vx, vy, vz, radius; SI units) to
+``trajectories.parquet`` one chunk of output frames at a time, so a long run
+never holds all frames in memory.
+
+Scenes with pair forces (contact, bonding, friction, near-field) are handed
+to the DEM engine, ``sim.dem.run_dem``.
+
+If positions or velocities become NaN/Inf, the run stops with a UserError
+naming the time; the frames before it stay in ``trajectories.parquet``
+(marked incomplete) and the last good state is written to
+``last_good_state.npz``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ptrack.errors import UserError, atomic_output
+from ptrack.table import TrajectoryWriter
+from sim.forces.brownian import seed_rng
+from sim.forces.drag import max_reynolds
+from sim.integrate import (IntegratorChoice, _reynolds_at_balance, choose_integrator, ou_exact_kernel,
+                           overdamped_kernel, trapezoidal_kernel)
+from sim.scene import Scene, State, build_state, constant_force
+
+log = logging.getLogger("sim.run")
+
+
+@dataclasses.dataclass
+class RunResult:
+    """Where a run wrote its output and what it did."""
+    trajectories: Path
+    scene_json: Path
+    choice: IntegratorChoice | None
+    n_frames: int
+    wall_time_s: float
+    state: State | None = None
+
+
+def numba_seed(seed) -> int:
+    """Integer seed for numba's generator derived from a scene seed (same seed -> same numbers)."""
+    return int(np.random.default_rng(seed).integers(0, 2**31 - 1))
+
+
+class Stepper:
+    """Advance a :class:`State` frame by frame with the chosen free-particle integrator.
+
+    Usable on its own (the studies use it without any file output)::
+
+        st = build_state(scene); fc = constant_force(scene, st)
+        choice = choose_integrator(scene, st, fc)
+        stepper = Stepper(scene, st, fc, choice)
+        pos, vel = stepper.advance(nframes)      # (nframes, N, 3) each
+    """
+
+    def __init__(self, scene: Scene, state: State, fconst: np.ndarray, choice: IntegratorChoice, seed=None):
+        self.scene = scene
+        self.state = state
+        self.fconst = np.ascontiguousarray(fconst, dtype=np.float64)
+        self.choice = choice
+        self.vf = np.ascontiguousarray(scene.fluid.velocity, dtype=np.float64)
+        self.B = np.ascontiguousarray(scene.fields.B, dtype=np.float64)
+        self.box = np.ascontiguousarray(scene.domain.size, dtype=np.float64)
+        self.modes = scene.boundaries.modes
+        self.noise = scene.kT > 0.0
+        self.kT = scene.kT
+        self.failures = 0
+        self.re_balance = float(np.max(_reynolds_at_balance(scene, state, self.fconst), initial=0.0))
+        self.kernel_log: list[str] = []
+        seed_rng(numba_seed(scene.seed if seed is None else seed))
+
+    def stokes_only(self) -> bool:
+        """True if the drag stays in the Stokes branch (Re <= 1) now and at the force balance."""
+        re_now = max_reynolds(self.state.vel, self.vf, self.state.radius, self.scene.fluid.density,
+                              self.scene.fluid.viscosity)
+        return re_now <= 1.0 and self.re_balance <= 1.0
+
+    def advance(self, nframes: int, out_pos=None, out_vel=None):
+        """Advance ``nframes`` output intervals; return the frames (nframes, N, 3) of positions and velocities."""
+        st = self.state
+        c = self.choice
+        n = st.n
+        if out_pos is None:
+            out_pos = np.empty((nframes, n, 3))
+            out_vel = np.empty((nframes, n, 3))
+        if c.kind == "ou_exact":
+            ou_exact_kernel(st.pos, st.vel, st.radius, st.mass, st.gamma, self.fconst, self.vf, self.kT, c.dt,
+                            c.steps_per_output, nframes, self.box, self.modes, out_pos, out_vel, self.noise)
+        elif c.kind == "overdamped":
+            overdamped_kernel(st.pos, st.vel, st.radius, st.gamma, self.fconst, self.vf, self.kT, c.dt,
+                              c.steps_per_output, nframes, self.box, self.modes, out_pos, out_vel, self.noise,
+                              bool(self.scene.integrator.hindered_mobility))
+        else:
+            spec = self.scene.integrator
+            # the drag-law branching is skipped while Re stays <= 1; checked once per output interval
+            for f in range(nframes):
+                stokes = self.stokes_only()
+                self.failures += trapezoidal_kernel(
+                    st.pos, st.vel, st.radius, st.mass, st.gamma, st.charge, self.fconst, self.vf, self.B,
+                    self.scene.fluid.density, self.scene.fluid.viscosity, self.kT, c.dt, c.steps_per_output, 1,
+                    self.box, self.modes, out_pos[f:f + 1], out_vel[f:f + 1], self.noise, c.phi,
+                    spec.tolerance, spec.max_iterations, stokes)
+        st.t += nframes * self.scene.time.output_interval
+        return out_pos, out_vel
+
+
+def _frame_table(frames: np.ndarray, t: np.ndarray, pos: np.ndarray, vel: np.ndarray, radius: np.ndarray) -> pd.DataFrame:
+    nf, n = pos.shape[0], pos.shape[1]
+    return pd.DataFrame({
+        "frame": np.repeat(frames.astype(np.int64), n),
+        "t": np.repeat(t, n),
+        "particle": np.tile(np.arange(n, dtype=np.int64), nf),
+        "x": pos[:, :, 0].ravel(), "y": pos[:, :, 1].ravel(), "z": pos[:, :, 2].ravel(),
+        "vx": vel[:, :, 0].ravel(), "vy": vel[:, :, 1].ravel(), "vz": vel[:, :, 2].ravel(),
+        "radius": np.tile(radius, nf),
+    })
+
+
+def _write_state(path: Path, state: State, t: float) -> None:
+    with atomic_output(path, "wb") as fh:
+        np.savez(fh, t=t, pos=state.pos, vel=state.vel, radius=state.radius, mass=state.mass,
+                 charge=state.charge)
+
+
+def run_scene(scene: Scene, out_dir, seed=None, progress: bool = True, resume: bool = False,
+              max_rows_per_chunk: int = 1_000_000) -> RunResult:
+    """Run a scene and stream its trajectories to ``out_dir/trajectories.parquet``.
+
+    Parameters
+    ----------
+    scene : Scene
+    out_dir : path-like
+        Output directory (created). Receives ``trajectories.parquet`` and
+        ``scene.json`` (resolved scene, chosen integrator, dt and why).
+    seed : int, optional
+        Overrides ``scene.seed``.
+    progress : bool
+        tqdm progress bar on stderr.
+    resume : bool
+        Passed to the DEM engine; free-particle runs always start afresh.
+    max_rows_per_chunk : int
+        Rows buffered before a chunk is appended to the Parquet file.
+
+    Returns
+    -------
+    RunResult
+
+    Raises
+    ------
+    UserError
+        Unstable time step (before the run), or NaN/Inf during the run (the
+        frames so far and ``last_good_state.npz`` are kept).
+    """
+    if seed is not None:
+        scene = dataclasses.replace(scene, seed=int(seed))
+    out_dir = Path(out_dir)
+    if scene.interactions is not None and getattr(scene.interactions, "any_pair_force", False):
+        from sim.dem import run_dem
+        return run_dem(scene, out_dir, resume=resume, progress=progress)
+
+    t0 = time.perf_counter()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    state = build_state(scene)
+    fconst = constant_force(scene, state)
+    choice = choose_integrator(scene, state, fconst)
+    n_out = int(round(scene.time.final / scene.time.output_interval))
+    resolved = {"scene": scene.to_dict(), "integrator": choice.to_dict(), "n_output_frames": n_out + 1,
+                "gravity_note": "gravity with buoyancy is on unless [gravity] enabled = false",
+                "units": "SI"}
+    scene_json = out_dir / "scene.json"
+    with atomic_output(scene_json, "w") as fh:
+        json.dump(resolved, fh, indent=2, default=float)
+    traj_path = out_dir / "trajectories.parquet"
+    meta = {"source": "sim", "frame_interval": scene.time.output_interval, "scene": scene.source,
+            "integrator": choice.kind, "dt": choice.dt, "integrator_reason": choice.reason, "seed": scene.seed}
+    stepper = Stepper(scene, state, fconst, choice)
+    n = state.n
+    group = max(1, min(n_out, max_rows_per_chunk // max(n, 1)))
+    buf_pos = np.empty((group, n, 3))
+    buf_vel = np.empty((group, n, 3))
+    dt_out = scene.time.output_interval
+    writer = TrajectoryWriter(traj_path, meta)
+    from tqdm import tqdm
+    bar = tqdm(total=n_out, desc="simulate", unit="frame", disable=not progress, file=sys.stderr)
+    try:
+        writer.append(_frame_table(np.array([0]), np.array([0.0]), state.pos[None], state.vel[None], state.radius))
+        done = 0
+        while done < n_out:
+            g = min(group, n_out - done)
+            good = state.copy()
+            stepper.advance(g, buf_pos[:g], buf_vel[:g])
+            ok = np.isfinite(buf_pos[:g]).all(axis=(1, 2)) & np.isfinite(buf_vel[:g]).all(axis=(1, 2))
+            if not ok.all():
+                nbad = int(np.argmin(ok))
+                if nbad > 0:
+                    frames = np.arange(done + 1, done + 1 + nbad)
+                    writer.append(_frame_table(frames, frames * dt_out, buf_pos[:nbad], buf_vel[:nbad], state.radius))
+                    good.pos = buf_pos[nbad - 1].copy()
+                    good.vel = buf_vel[nbad - 1].copy()
+                t_good = (done + nbad) * dt_out
+                _write_state(out_dir / "last_good_state.npz", good, t_good)
+                t_bad = (done + nbad + 1) * dt_out
+                reason = f"non-finite positions/velocities by t = {t_bad:.6g} s"
+                writer.close(failed=reason)
+                raise UserError(
+                    f"simulation stopped: {reason} (integrator {choice.kind}, dt = {choice.dt:.3g} s); "
+                    f"frames up to t = {t_good:.6g} s are in {traj_path}, last good state in {out_dir / 'last_good_state.npz'}",
+                    "reduce time.dt or check the forces and parameters of the scene")
+            frames = np.arange(done + 1, done + 1 + g)
+            writer.append(_frame_table(frames, frames * dt_out, buf_pos[:g], buf_vel[:g], state.radius))
+            done += g
+            bar.update(g)
+    except UserError:
+        raise
+    except BaseException as exc:
+        writer.close(failed=f"{type(exc).__name__}: {exc}")
+        raise
+    finally:
+        bar.close()
+    writer.close()
+    if stepper.failures:
+        log.warning("trapezoidal fixed-point iteration did not converge in %d steps", stepper.failures)
+    return RunResult(trajectories=traj_path, scene_json=scene_json, choice=choice, n_frames=n_out + 1,
+                     wall_time_s=time.perf_counter() - t0, state=state)
