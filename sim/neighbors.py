@@ -1,0 +1,392 @@
+"""Cell lists and Verlet (neighbour) lists with a skin, open or periodic sides.
+
+The neighbour list is a *half* list in compressed-row form: for particle ``i``
+the entries ``start[i] .. start[i+1]-1`` hold its partners ``j > i`` (each pair
+appears exactly once, so a pair force is computed once and applied as +F / -F,
+which keeps Newton's third law to round-off).  Each entry also stores the
+periodic image ``shift`` (m) to add to ``x_i - x_j``: positions are wrapped into
+the box only when the list is rebuilt, so between rebuilds the image of every
+pair is fixed and the pair kernels need no minimum-image branch.
+
+Per-entry contact history (the tangential spring of Hooke/Coulomb friction, a
+bond flag, ...) lives in an ``(M, H)`` float64 array aligned with the list; on a
+rebuild :func:`carry_history` copies it to the new entries of the same pairs,
+so history survives rebuilds.
+
+Building costs O(N): particles are binned into cells at least one cut-off wide
+(counting sort) and each particle only looks at the 27 surrounding cells.  The
+list is rebuilt when the largest displacement since the last build exceeds half
+the skin (:func:`needs_rebuild`), which guarantees no pair inside the cut-off
+is ever missing.
+
+All lengths are in metres.  Boxes: ``lo`` (3,) lower corner, ``length`` (3,)
+edge lengths, ``periodic`` (3,) int flags; only periodic axes use ``lo`` and
+``length`` (open axes are binned over the particles' current extent).
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+__all__ = [
+    "build_neighbor_list",
+    "carry_history",
+    "needs_rebuild",
+    "wrap_positions",
+    "brute_force_pairs",
+    "NeighborList",
+]
+
+_MAX_CELLS_PER_PARTICLE = 8
+
+
+@njit(cache=True)
+def wrap_positions(pos, image, lo, length, periodic):
+    """Wrap positions into the periodic box in place, counting image crossings.
+
+    ``unwrapped = pos + image * length`` is preserved.
+    """
+    n = pos.shape[0]
+    for d in range(3):
+        if periodic[d] == 0:
+            continue
+        L = length[d]
+        for i in range(n):
+            s = np.floor((pos[i, d] - lo[d]) / L)
+            if s != 0.0:
+                pos[i, d] -= s * L
+                image[i, d] += s
+                # guard against round-off putting a particle exactly at lo+L
+                if pos[i, d] >= lo[d] + L:
+                    pos[i, d] -= L
+                    image[i, d] += 1.0
+
+
+@njit(cache=True)
+def _bin_particles(pos, cell_size, lo, length, periodic):
+    """Counting sort of particles into cells; returns grid info and order."""
+    n = pos.shape[0]
+    origin = np.empty(3)
+    ncell = np.empty(3, dtype=np.int64)
+    csize = np.empty(3)
+    for d in range(3):
+        if periodic[d] != 0:
+            origin[d] = lo[d]
+            nc = int(np.floor(length[d] / cell_size))
+            if nc < 1:
+                nc = 1
+            ncell[d] = nc
+            csize[d] = length[d] / nc
+        else:
+            mn = pos[0, d]
+            mx = pos[0, d]
+            for i in range(n):
+                v = pos[i, d]
+                if v < mn:
+                    mn = v
+                if v > mx:
+                    mx = v
+            origin[d] = mn
+            nc = int(np.floor((mx - mn) / cell_size)) + 1
+            ncell[d] = nc
+            csize[d] = cell_size
+    # keep memory O(N) when a few particles fly far away on an open axis
+    total = ncell[0] * ncell[1] * ncell[2]
+    limit = _MAX_CELLS_PER_PARTICLE * n + 64
+    while total > limit:
+        coarsened = False
+        for d in range(3):
+            if periodic[d] == 0 and ncell[d] > 1:
+                csize[d] *= 2.0
+                ncell[d] = (ncell[d] + 1) // 2
+                coarsened = True
+        total = ncell[0] * ncell[1] * ncell[2]
+        if not coarsened:
+            break
+    cell_of = np.empty(n, dtype=np.int64)
+    counts = np.zeros(total + 1, dtype=np.int64)
+    for i in range(n):
+        c = 0
+        for d in range(3):
+            k = int(np.floor((pos[i, d] - origin[d]) / csize[d]))
+            if periodic[d] != 0:
+                k = k % ncell[d]
+            else:
+                if k < 0:
+                    k = 0
+                elif k >= ncell[d]:
+                    k = ncell[d] - 1
+            c = c * ncell[d] + k
+        cell_of[i] = c
+        counts[c + 1] += 1
+    for c in range(total):
+        counts[c + 1] += counts[c]
+    fill = counts[:-1].copy()
+    order = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        c = cell_of[i]
+        order[fill[c]] = i
+        fill[c] += 1
+    return ncell, cell_of, counts, order
+
+
+@njit(cache=True)
+def _scan(pos, radius, cutoff, skin, lo, length, periodic, ncell, cell_of, cell_start,
+          order, start, nbj, shift, fill):
+    """One pass over candidate pairs: count (fill=False) or store (fill=True)."""
+    n = pos.shape[0]
+    nx, ny, nz = ncell[0], ncell[1], ncell[2]
+    # number of distinct neighbour-cell offsets per axis (avoid double visits)
+    lohi = np.empty((3, 2), dtype=np.int64)
+    for d in range(3):
+        if ncell[d] >= 3 or periodic[d] == 0:
+            lohi[d, 0] = -1
+            lohi[d, 1] = 1
+        elif ncell[d] == 2:
+            lohi[d, 0] = 0
+            lohi[d, 1] = 1
+        else:
+            lohi[d, 0] = 0
+            lohi[d, 1] = 0
+    count_total = 0
+    for i in range(n):
+        if fill:
+            k = start[i]
+        else:
+            k = 0
+        c = cell_of[i]
+        cz = c % nz
+        cy = (c // nz) % ny
+        cx = c // (ny * nz)
+        xi = pos[i, 0]
+        yi = pos[i, 1]
+        zi = pos[i, 2]
+        ri = radius[i]
+        for ox in range(lohi[0, 0], lohi[0, 1] + 1):
+            ax = cx + ox
+            if periodic[0] != 0:
+                ax = ax % nx
+            elif ax < 0 or ax >= nx:
+                continue
+            for oy in range(lohi[1, 0], lohi[1, 1] + 1):
+                ay = cy + oy
+                if periodic[1] != 0:
+                    ay = ay % ny
+                elif ay < 0 or ay >= ny:
+                    continue
+                for oz in range(lohi[2, 0], lohi[2, 1] + 1):
+                    az = cz + oz
+                    if periodic[2] != 0:
+                        az = az % nz
+                    elif az < 0 or az >= nz:
+                        continue
+                    cc = (ax * ny + ay) * nz + az
+                    for q in range(cell_start[cc], cell_start[cc + 1]):
+                        j = order[q]
+                        if j <= i:
+                            continue
+                        dx = xi - pos[j, 0]
+                        dy = yi - pos[j, 1]
+                        dz = zi - pos[j, 2]
+                        sx = 0.0
+                        sy = 0.0
+                        sz = 0.0
+                        if periodic[0] != 0:
+                            sx = -length[0] * np.rint(dx / length[0])
+                            dx += sx
+                        if periodic[1] != 0:
+                            sy = -length[1] * np.rint(dy / length[1])
+                            dy += sy
+                        if periodic[2] != 0:
+                            sz = -length[2] * np.rint(dz / length[2])
+                            dz += sz
+                        rc = ri + radius[j]
+                        if cutoff > rc:
+                            rc = cutoff
+                        rc += skin
+                        if dx * dx + dy * dy + dz * dz < rc * rc:
+                            if fill:
+                                nbj[k] = j
+                                shift[k, 0] = sx
+                                shift[k, 1] = sy
+                                shift[k, 2] = sz
+                                k += 1
+                            else:
+                                k += 1
+        if not fill:
+            start[i + 1] = k
+            count_total += k
+    return count_total
+
+
+@njit(cache=True)
+def _build(pos, radius, cutoff, skin, lo, length, periodic):
+    n = pos.shape[0]
+    rmax = 0.0
+    for i in range(n):
+        if radius[i] > rmax:
+            rmax = radius[i]
+    cell_size = 2.0 * rmax
+    if cutoff > cell_size:
+        cell_size = cutoff
+    cell_size += skin
+    ncell, cell_of, cell_start, order = _bin_particles(pos, cell_size, lo, length, periodic)
+    start = np.zeros(n + 1, dtype=np.int64)
+    dummy_j = np.empty(0, dtype=np.int64)
+    dummy_s = np.empty((0, 3))
+    _scan(pos, radius, cutoff, skin, lo, length, periodic, ncell, cell_of, cell_start,
+          order, start, dummy_j, dummy_s, False)
+    for i in range(n):
+        start[i + 1] += start[i]
+    m = start[n]
+    nbj = np.empty(m, dtype=np.int64)
+    shift = np.zeros((m, 3))
+    _scan(pos, radius, cutoff, skin, lo, length, periodic, ncell, cell_of, cell_start,
+          order, start, nbj, shift, True)
+    return start, nbj, shift
+
+
+def build_neighbor_list(pos, radius, cutoff=0.0, skin=0.0, lo=None, length=None, periodic=None):
+    """Build a half Verlet list.
+
+    Parameters
+    ----------
+    pos : (N, 3) float64 array
+        Particle centres (m).  On periodic axes they should be wrapped into the
+        box (:func:`wrap_positions`); they are binned modulo the box anyway.
+    radius : (N,) float64 array
+        Radii (m).  A pair is listed when its centre distance is below
+        ``max(R_i + R_j, cutoff) + skin``.
+    cutoff : float
+        Centre-to-centre range of non-contact pair forces (m); 0 for contact only.
+    skin : float
+        Verlet skin (m).
+    lo, length : (3,) arrays, optional
+        Box lower corner and edge lengths (m); used on periodic axes only, which
+        must be at least ``2 * (max(2 R_max, cutoff) + skin)`` long.
+    periodic : (3,) int array, optional
+        1 for a periodic axis.
+
+    Returns
+    -------
+    start : (N+1,) int64, nbj : (M,) int64, shift : (M, 3) float64
+        Compressed-row half list; add ``shift[k]`` to ``x_i - x_j``.
+    """
+    pos = np.ascontiguousarray(pos, dtype=np.float64)
+    radius = np.ascontiguousarray(radius, dtype=np.float64)
+    lo = np.zeros(3) if lo is None else np.asarray(lo, dtype=np.float64)
+    length = np.ones(3) if length is None else np.asarray(length, dtype=np.float64)
+    periodic = np.zeros(3, dtype=np.int64) if periodic is None else np.asarray(periodic, dtype=np.int64)
+    if len(pos) == 0:
+        return np.zeros(1, dtype=np.int64), np.empty(0, dtype=np.int64), np.empty((0, 3))
+    rng = 2.0 * float(radius.max()) if len(radius) else 0.0
+    reach = max(rng, float(cutoff)) + float(skin)
+    for d in range(3):
+        if periodic[d] and length[d] < 2.0 * reach:
+            from ptrack.errors import UserError
+
+            raise UserError(
+                f"periodic box edge {length[d]:.4g} m along axis {'xyz'[d]} is shorter than twice the "
+                f"interaction range {reach:.4g} m",
+                "make the box larger or the cutoff/skin smaller",
+            )
+    return _build(pos, radius, float(cutoff), float(skin), lo, length, periodic)
+
+
+@njit(cache=True)
+def carry_history(old_start, old_nbj, old_hist, new_start, new_nbj):
+    """Copy per-entry history from an old list to a new one (same pairs).
+
+    Returns the new ``(M_new, H)`` history array; pairs absent from the old list
+    start with zeros.
+    """
+    n = new_start.shape[0] - 1
+    h = old_hist.shape[1]
+    new_hist = np.zeros((new_nbj.shape[0], h))
+    if old_hist.shape[0] == 0:
+        return new_hist
+    for i in range(n):
+        a0 = old_start[i]
+        a1 = old_start[i + 1]
+        if a0 == a1:
+            continue
+        for k in range(new_start[i], new_start[i + 1]):
+            j = new_nbj[k]
+            for q in range(a0, a1):
+                if old_nbj[q] == j:
+                    nonzero = False
+                    for c in range(h):
+                        if old_hist[q, c] != 0.0:
+                            nonzero = True
+                    if nonzero:
+                        for c in range(h):
+                            new_hist[k, c] = old_hist[q, c]
+                    break
+    return new_hist
+
+
+@njit(cache=True)
+def needs_rebuild(pos, ref_pos, skin):
+    """True when some particle moved more than skin/2 since the last build."""
+    lim = 0.25 * skin * skin
+    for i in range(pos.shape[0]):
+        dx = pos[i, 0] - ref_pos[i, 0]
+        dy = pos[i, 1] - ref_pos[i, 1]
+        dz = pos[i, 2] - ref_pos[i, 2]
+        if dx * dx + dy * dy + dz * dz > lim:
+            return True
+    return False
+
+
+def brute_force_pairs(pos, radius, cutoff=0.0, skin=0.0, length=None, periodic=None):
+    """All pairs ``(i, j)``, i < j, within ``max(R_i+R_j, cutoff) + skin`` (O(N^2), for tests)."""
+    pos = np.asarray(pos, dtype=float)
+    n = len(pos)
+    d = pos[:, None, :] - pos[None, :, :]
+    if periodic is not None:
+        L = np.asarray(length, dtype=float)
+        for a in range(3):
+            if periodic[a]:
+                d[..., a] -= L[a] * np.rint(d[..., a] / L[a])
+    r = np.sqrt((d**2).sum(-1))
+    rc = np.maximum(radius[:, None] + radius[None, :], cutoff) + skin
+    ii, jj = np.nonzero((r < rc) & (np.arange(n)[:, None] < np.arange(n)[None, :]))
+    return set(zip(ii.tolist(), jj.tolist()))
+
+
+class NeighborList:
+    """Convenience holder: a half list plus its history, rebuilt on demand.
+
+    Parameters are those of :func:`build_neighbor_list`; ``n_history`` is the
+    number of history values per entry (3 for a tangential spring).
+    """
+
+    def __init__(self, cutoff, skin, lo, length, periodic, n_history=0):
+        self.cutoff = float(cutoff)
+        self.skin = float(skin)
+        self.lo = np.asarray(lo, dtype=float)
+        self.length = np.asarray(length, dtype=float)
+        self.periodic = np.asarray(periodic, dtype=np.int64)
+        self.n_history = int(n_history)
+        self.start = None
+        self.nbj = None
+        self.shift = None
+        self.hist = None
+        self.ref_pos = None
+        self.builds = 0
+
+    def build(self, pos, radius):
+        start, nbj, shift = build_neighbor_list(pos, radius, self.cutoff, self.skin, self.lo,
+                                                self.length, self.periodic)
+        if self.hist is not None and self.n_history:
+            self.hist = carry_history(self.start, self.nbj, self.hist, start, nbj)
+        else:
+            self.hist = np.zeros((len(nbj), self.n_history))
+        self.start, self.nbj, self.shift = start, nbj, shift
+        self.ref_pos = np.array(pos, dtype=float, copy=True)
+        self.builds += 1
+
+    def pairs(self):
+        """Set of (i, j) pairs currently listed."""
+        i = np.repeat(np.arange(len(self.start) - 1), np.diff(self.start))
+        return set(zip(i.tolist(), self.nbj.tolist()))
