@@ -489,7 +489,7 @@ def particle_charge(scene: Scene, radius: np.ndarray, mass: np.ndarray) -> np.nd
     if p.zeta_potential is not None:
         from sim.electrokinetics import colloid_charge
         lam = debye_length_of(scene, radius)
-        return np.asarray(colloid_charge(radius, p.zeta_potential, scene.fluid.relative_permittivity, lam),
+        return np.asarray(colloid_charge(p.zeta_potential, radius, lam, scene.fluid.relative_permittivity),
                           dtype=np.float64) * np.ones(len(radius))
     return np.zeros(len(radius))
 

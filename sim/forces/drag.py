@@ -18,20 +18,7 @@ import math
 import numpy as np
 from numba import njit
 
-try:  # one implementation of the seed's piecewise C_D (eq. 3.5)
-    from sim.electrokinetics import drag_coefficient_nb as _cd
-except ImportError:  # pragma: no cover - only while sim.electrokinetics is being written
-    @njit(cache=True)
-    def _cd(re):
-        if re <= 1.0:
-            return 24.0 / re
-        if re <= 400.0:
-            return 24.0 / re ** 0.646
-        if re <= 3.0e5:
-            return 0.5
-        if re <= 2.0e6:
-            return 0.000366 * re ** 0.4275
-        return 0.18
+from sim.electrokinetics import drag_coefficient_nb as _cd  # the seed's piecewise C_D (eq. 3.5), one implementation
 
 
 def stokes_gamma(radius, viscosity) -> np.ndarray:
