@@ -1,0 +1,445 @@
+"""Synthetic microscope movies from a trajectories table, with exact ground truth.
+
+:func:`render_frames` turns a trajectories table (simulated or hand-made,
+SI units, see :mod:`ptrack.table`) into 2D uint16 camera frames, one per
+unique ``frame`` of the table, in order. :func:`render_movie` writes them to a
+multi-page TIFF frame by frame (bounded memory), with ImageJ metadata (pixel
+size, frame interval) plus the same numbers as JSON, the ground-truth table
+(``truth.parquet``, with ``x_px``, ``y_px``, ``photons``, ``signal``,
+``defocus``) and the rendering parameters (``params.json``).
+
+Geometry: ``x_px = x / pixel_size`` along columns, ``y_px = y / pixel_size``
+along rows, the centre of pixel (0, 0) at (0, 0) (trackpy's convention);
+``pixel_size = camera.pixel_pitch / optics.magnification``. The defocus of a
+particle is ``z - focal_plane`` (z NaN, i.e. 2D data, renders in focus).
+
+Each particle is rendered into a small square patch (see
+:func:`sim.render.optics.patch_size`) from an OTF stack precomputed once per
+movie, shifted by an exact Fourier phase ramp, blurred by its projected size
+and integrated over the pixel area, then added to the frame; the camera model
+(:mod:`sim.render.camera`) adds shot and read noise. Optional motion blur
+averages ``motion_blur_substeps`` sub-positions spread over the exposure
+(centred on the frame time, positions interpolated linearly between the
+table's frames).
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import scipy.fft as sfft
+from numba import njit
+
+from ptrack.errors import UserError, atomic_output, check_positive
+from ptrack.table import metadata, validate, write_table
+
+from .camera import Camera, expose
+from .optics import Optics, PSFStack, build_psf_stack, check_sampling, patch_size, sample_pixel_size, size_transfer
+
+__all__ = ["render_frames", "render_movie", "frame_interval_of"]
+
+_CHUNK_BYTES = 48e6
+
+
+@njit(cache=True)
+def _add_patches(frame, patches, iy0, ix0, sign):
+    """Add ``sign * patches[k]`` to ``frame`` with patch pixel (0, 0) at frame (iy0[k], ix0[k]); clipped at the edges."""
+    H, W = frame.shape
+    K, n, _ = patches.shape
+    for k in range(K):
+        y0 = iy0[k]
+        x0 = ix0[k]
+        r0 = max(0, -y0)
+        r1 = min(n, H - y0)
+        c0 = max(0, -x0)
+        c1 = min(n, W - x0)
+        for r in range(r0, r1):
+            for c in range(c0, c1):
+                frame[y0 + r, x0 + c] += sign * patches[k, r, c]
+
+
+class _Renderer:
+    """Expected photon images of point-like / spherical emitters from a PSF stack."""
+
+    def __init__(self, stack: PSFStack):
+        self.stack = stack
+        n = stack.n
+        self.n = n
+        self.fy = np.fft.fftfreq(n)
+        self.fx = np.fft.rfftfreq(n)
+        self._size_cache: dict[float, np.ndarray] = {}
+
+    def _size(self, radius: float) -> np.ndarray:
+        t = self._size_cache.get(radius)
+        if t is None:
+            t = size_transfer(self.stack.kr, radius)
+            if len(self._size_cache) < 64:
+                self._size_cache[radius] = t
+        return t
+
+    def otf_at(self, defocus: np.ndarray) -> np.ndarray:
+        st = self.stack
+        zi = (defocus - st.z0) / st.dz
+        i0 = np.clip(np.floor(zi).astype(np.int64), 0, max(st.nz - 2, 0))
+        if st.nz == 1:
+            return st.otf[np.zeros(len(defocus), dtype=np.int64)]
+        w = np.clip(zi - i0, 0.0, 1.0)[:, None, None]
+        return st.otf[i0] * (1.0 - w) + st.otf[i0 + 1] * w
+
+    def ramp(self, dy: np.ndarray, dx: np.ndarray) -> np.ndarray:
+        """Fourier phase ramp placing the source at patch position (c + dy, c + dx), c = n // 2."""
+        c = self.n // 2
+        ey = np.exp(-2j * np.pi * self.fy[None, :] * (c + dy)[:, None])
+        ex = np.exp(-2j * np.pi * self.fx[None, :] * (c + dx)[:, None])
+        return ey[:, :, None] * ex[:, None, :]
+
+    def patches(self, x_px, y_px, defocus, radius, photons, sub=None):
+        """Patches (K, n, n) of expected photons and their top-left frame indices.
+
+        ``sub``: optional list of (weight, x_px, y_px, defocus) sub-positions for
+        motion blur (weights sum to 1); the patch is anchored at the rounded
+        (x_px, y_px).
+        """
+        ix = np.rint(x_px).astype(np.int64)
+        iy = np.rint(y_px).astype(np.int64)
+        c = self.n // 2
+        if sub is None:
+            otf = self.otf_at(defocus) * self.ramp(y_px - iy, x_px - ix)
+        else:
+            otf = None
+            for w, xs, ys, zs in sub:
+                term = self.otf_at(zs) * self.ramp(ys - iy, xs - ix)
+                term *= w
+                otf = term if otf is None else otf + term
+        for r in np.unique(radius):
+            if r > 0:
+                sel = radius == r
+                otf[sel] *= self._size(float(r))
+        otf *= photons[:, None, None]
+        pat = sfft.irfft2(otf, s=(self.n, self.n), workers=1)
+        return pat, iy - c, ix - c
+
+
+def frame_interval_of(table: pd.DataFrame) -> float:
+    """Frame interval (s): table metadata ``frame_interval``, else from ``t`` and ``frame``; 1 s if undetermined."""
+    meta = metadata(table)
+    fi = meta.get("frame_interval")
+    if fi:
+        return float(fi)
+    f = table["frame"].to_numpy()
+    t = table["t"].to_numpy()
+    if f.size and f.max() > f.min():
+        i, j = int(np.argmin(f)), int(np.argmax(f))
+        dt = (t[j] - t[i]) / (f[j] - f[i])
+        if dt > 0 and math.isfinite(dt):
+            return float(dt)
+    return 1.0
+
+
+class _Scene:
+    """Per-row arrays prepared once for a table."""
+
+    def __init__(self, table, shape, optics, camera, focal_plane, motion_blur_substeps, radius, progress_stack=False):
+        table = validate(table.copy())
+        self.table = table
+        try:
+            H, W = (int(v) for v in shape)
+        except (TypeError, ValueError):
+            raise UserError(f"shape = {shape!r} is not two integers", "give the frame shape as (height, width) in pixels")
+        if H < 1 or W < 1 or H * W > 2 ** 28:
+            raise UserError(f"shape = {shape!r} is out of range", "give a frame height and width of 1..16384 pixels")
+        self.shape = (H, W)
+        self.optics = optics or Optics()
+        self.camera = camera or Camera()
+        self.focal_plane = float(focal_plane)
+        if not math.isfinite(self.focal_plane):
+            raise UserError(f"focal_plane = {focal_plane!r} is not finite", "give the focal-plane height in m")
+        self.pixel = sample_pixel_size(self.optics, self.camera.pixel_pitch)
+        check_sampling(self.optics, self.pixel)
+        S = int(motion_blur_substeps)
+        if S < 0:
+            raise UserError(f"motion_blur_substeps = {motion_blur_substeps!r} is negative", "give 0 (no blur) or a positive number")
+        self.substeps = S
+        self.frame_interval = frame_interval_of(table)
+        self.exposure = float(self.camera.exposure) if self.camera.exposure else self.frame_interval
+
+        self.x_px = table["x"].to_numpy() / self.pixel
+        self.y_px = table["y"].to_numpy() / self.pixel
+        z = table["z"].to_numpy()
+        self.defocus = np.where(np.isfinite(z), z - self.focal_plane, 0.0)
+        if radius is not None:
+            r = np.full(len(table), check_positive("radius", radius, allow_zero=True))
+        elif "radius" in table.columns:
+            r = pd.to_numeric(table["radius"], errors="coerce").to_numpy(dtype=float)
+            r = np.where(np.isfinite(r) & (r > 0), r, 0.0)
+        else:
+            r = np.zeros(len(table))
+        self.radius = r
+        if "photons" in table.columns:
+            ph = pd.to_numeric(table["photons"], errors="coerce").to_numpy(dtype=float)
+            if not np.all(np.isfinite(ph)) or (ph < 0).any():
+                raise UserError("table column 'photons' has negative or non-finite values", "give photons per particle per exposure >= 0")
+        else:
+            ph = np.full(len(table), float(self.camera.photons))
+        self.photons = ph
+
+        frames = table["frame"].to_numpy()
+        order = np.argsort(frames, kind="stable")
+        self.frames, starts = np.unique(frames[order], return_index=True)
+        self.groups = np.split(order, starts[1:]) if len(order) else []
+
+        # Sub-positions for motion blur: linear interpolation to the neighbouring rows of the same particle.
+        if S > 0 and len(table):
+            p = table["particle"].to_numpy()
+            t = table["t"].to_numpy()
+            same_next = np.r_[p[1:] == p[:-1], False]
+            same_prev = np.r_[False, p[1:] == p[:-1]]
+            vel = []
+            for arr in (self.x_px, self.y_px, self.defocus):
+                nxt = np.r_[arr[1:], arr[-1:]]
+                prv = np.r_[arr[:1], arr[:-1]]
+                tn = np.r_[t[1:], t[-1:]]
+                tp = np.r_[t[:1], t[:-1]]
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    vf = np.where(same_next, (nxt - arr) / (tn - t), np.nan)
+                    vb = np.where(same_prev, (arr - prv) / (t - tp), np.nan)
+                vf = np.where(np.isfinite(vf), vf, np.where(np.isfinite(vb), vb, 0.0))
+                vb = np.where(np.isfinite(vb), vb, vf)
+                vel.append((vf, vb))
+            self.vel = vel
+            taus = ((np.arange(S) + 0.5) / S - 0.5) * self.exposure
+            self.taus = taus
+            vmax = max(float(np.max(np.abs(np.concatenate(v)))) if len(table) else 0.0 for v in vel[:2])
+            self.blur_px = vmax * self.exposure / 2
+            vz = max(float(np.max(np.abs(np.concatenate(vel[2])))), 0.0)
+            self.blur_z = vz * self.exposure / 2
+        else:
+            self.blur_px = 0.0
+            self.blur_z = 0.0
+
+        if len(table):
+            zmin = float(self.defocus.min()) - self.blur_z
+            zmax = float(self.defocus.max()) + self.blur_z
+            rmax = float(self.radius.max())
+        else:
+            zmin = zmax = 0.0
+            rmax = 0.0
+        n = patch_size(self.optics, self.pixel, max(abs(zmin), abs(zmax)), rmax)
+        if self.blur_px > 0:
+            n = patch_size(self.optics, self.pixel, max(abs(zmin), abs(zmax)) + 2 * self.blur_px * self.pixel / max(self.optics.half_angle_tan, 1e-9), rmax)
+        self.stack = build_psf_stack(self.optics, self.pixel, zmin, zmax, rmax, n=n)
+        self.renderer = _Renderer(self.stack)
+
+    def sub_positions(self, idx):
+        if self.substeps <= 0:
+            return None
+        out = []
+        w = 1.0 / self.substeps
+        (vxf, vxb), (vyf, vyb), (vzf, vzb) = self.vel
+        for tau in self.taus:
+            if tau >= 0:
+                vx, vy, vz = vxf[idx], vyf[idx], vzf[idx]
+            else:
+                vx, vy, vz = vxb[idx], vyb[idx], vzb[idx]
+            out.append((w, self.x_px[idx] + vx * tau, self.y_px[idx] + vy * tau, self.defocus[idx] + vz * tau))
+        return out
+
+    def expected(self, idx, brightfield: bool):
+        """Expected photons per pixel (H, W) for the rows ``idx`` of one frame, and each row's peak photons."""
+        H, W = self.shape
+        img = np.full((H, W), float(self.camera.background))
+        peaks = np.zeros(len(idx))
+        n = self.stack.n
+        c = n // 2
+        # cull particles whose patch misses the frame entirely
+        ix = np.rint(self.x_px[idx]).astype(np.int64)
+        iy = np.rint(self.y_px[idx]).astype(np.int64)
+        keep = (ix + n - c > 0) & (ix - c < W) & (iy + n - c > 0) & (iy - c < H) & (self.photons[idx] > 0)
+        kidx = np.nonzero(keep)[0]
+        per = max(1, int(_CHUNK_BYTES // (n * (n // 2 + 1) * 16 * 3)))
+        sign = -1.0 if brightfield else 1.0
+        for s in range(0, len(kidx), per):
+            loc = kidx[s:s + per]
+            rows = idx[loc]
+            pat, y0, x0 = self.renderer.patches(self.x_px[rows], self.y_px[rows], self.defocus[rows],
+                                                self.radius[rows], self.photons[rows], self.sub_positions(rows))
+            peaks[loc] = pat.reshape(len(rows), -1).max(axis=1)
+            _add_patches(img, pat, y0, x0, sign)
+        if brightfield:
+            np.maximum(img, 0.0, out=img)
+        return img, peaks
+
+
+def _iter_frames(scene: _Scene, brightfield: bool, seed):
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    for f, idx in zip(scene.frames, scene.groups):
+        img, peaks = scene.expected(idx, brightfield)
+        yield int(f), idx, expose(img, scene.camera, rng), peaks
+
+
+def render_frames(table: pd.DataFrame, shape=(256, 256), optics: Optics | None = None, camera: Camera | None = None,
+                  focal_plane: float = 0.0, brightfield: bool = False, motion_blur_substeps: int = 0, seed=0,
+                  radius: float | None = None):
+    """Render a trajectories table as camera frames.
+
+    Parameters
+    ----------
+    table : DataFrame
+        Trajectories table (frame, t, particle, x, y, z in m). Optional columns
+        ``radius`` (m, projected-size blur) and ``photons`` (per exposure)
+        override the defaults per row.
+    shape : (int, int)
+        Frame height and width, pixels.
+    optics : Optics, optional
+    camera : Camera, optional
+    focal_plane : float
+        Height of the focal plane, m; a particle's defocus is ``z - focal_plane``.
+    brightfield : bool
+        Dark particles on a bright background (``camera.background`` photons
+        per pixel minus ``photons`` per particle spread as the PSF).
+    motion_blur_substeps : int
+        0: instantaneous positions; S > 0: average of S sub-positions over the exposure.
+    seed : int or numpy.random.Generator
+        Noise seed: same seed, same frames.
+    radius : float, optional
+        Particle radius for all rows, m (overrides a ``radius`` column; default 0 = point source).
+
+    Yields
+    ------
+    ndarray (H, W), uint16
+        One frame per sorted unique ``frame`` of the table.
+    """
+    scene = _Scene(table, shape, optics, camera, focal_plane, motion_blur_substeps, radius)
+    for _, _, img, _ in _iter_frames(scene, brightfield, seed):
+        yield img
+
+
+def _tiff_metadata(pixel: float, frame_interval: float, info: dict) -> dict:
+    return {"axes": "TYX", "unit": "um", "finterval": float(frame_interval), "Info": json.dumps(info)}
+
+
+def render_movie(table: pd.DataFrame, out_dir, shape=(256, 256), optics: Optics | None = None,
+                 camera: Camera | None = None, focal_plane: float = 0.0, brightfield: bool = False,
+                 motion_blur_substeps: int = 0, seed=0, radius: float | None = None,
+                 compression: str | None = None, extra_params: dict | None = None, progress: bool = True) -> dict:
+    """Render a table to ``out_dir/movie.tif`` (+ ``truth.parquet``, ``params.json``).
+
+    Every frame from the table's first to its last frame becomes one TIFF
+    page (frames absent from the table are background only), so page index =
+    ``frame - first_frame``; the truth table's ``frame`` column is that page
+    index (``params.json`` records ``frame_offset``). Frames are written one at
+    a time (memory bounded by one frame plus the PSF stack). Parameters as in
+    :func:`render_frames`; ``compression`` e.g. ``"zlib"`` (lossless);
+    ``extra_params`` are merged into ``params.json``.
+
+    Returns
+    -------
+    dict with paths ``movie``, ``truth``, ``params``.
+    """
+    import tifffile
+
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise UserError(f"output path {out_dir} exists and is not a directory", "give a directory for --out")
+    if len(table) == 0:
+        raise UserError("trajectories table is empty", "give a table with at least one row")
+    scene = _Scene(table, shape, optics, camera, focal_plane, motion_blur_substeps, radius)
+    tbl = scene.table
+    f0 = int(scene.frames[0])
+    nf = int(scene.frames[-1]) - f0 + 1
+    H, W = scene.shape
+    fi = scene.frame_interval
+    pixel = scene.pixel
+
+    signal = np.zeros(len(tbl))
+    gain_qe = scene.camera.gain * scene.camera.quantum_efficiency
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    by_frame = dict(zip((int(f) for f in scene.frames), scene.groups))
+
+    def pages():
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=nf, desc="render", unit="frame", leave=False)
+        try:
+            for f in range(f0, f0 + nf):
+                idx = by_frame.get(f)
+                if idx is None:
+                    idx = np.zeros(0, dtype=np.int64)
+                img, peaks = scene.expected(idx, brightfield)
+                signal[idx] = peaks * gain_qe
+                yield expose(img, scene.camera, rng)
+                if bar is not None:
+                    bar.update(1)
+        finally:
+            if bar is not None:
+                bar.close()
+
+    info = {
+        "pixel_size": pixel, "pixel_size_unit": "m", "frame_interval": fi, "frame_interval_unit": "s",
+        "shape": [H, W], "n_frames": nf, "focal_plane": scene.focal_plane, "brightfield": bool(brightfield),
+        "source": "sim.render.render_movie",
+    }
+    params = {
+        **info,
+        "frame_offset": f0,
+        "exposure": scene.exposure,
+        "motion_blur_substeps": scene.substeps,
+        "seed": seed if not isinstance(seed, np.random.Generator) else None,
+        "optics": scene.optics.to_dict(),
+        "camera": scene.camera.to_dict(),
+        "psf_patch_px": scene.stack.n,
+        "psf_z_step_used": scene.stack.dz,
+        "n_particles": int(tbl["particle"].nunique()),
+        "table_meta": metadata(tbl),
+        "compression": compression,
+    }
+    if extra_params:
+        params.update(extra_params)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    movie = out_dir / "movie.tif"
+    px_um = pixel * 1e6
+    with atomic_output(movie, None) as tmp:
+        tifffile.imwrite(
+            tmp, pages(), shape=(nf, H, W), dtype=np.uint16, imagej=True, compression=compression,
+            resolution=(1.0 / px_um, 1.0 / px_um), metadata=_tiff_metadata(pixel, fi, info),
+        )
+
+    truth = tbl.copy()
+    truth["frame"] = truth["frame"] - f0
+    truth["x_px"] = scene.x_px
+    truth["y_px"] = scene.y_px
+    truth["photons"] = scene.photons
+    truth["signal"] = signal
+    truth["defocus"] = scene.defocus
+    truth["in_frame"] = (scene.x_px > -0.5) & (scene.x_px < W - 0.5) & (scene.y_px > -0.5) & (scene.y_px < H - 0.5)
+    if "radius" not in truth.columns or radius is not None:
+        truth["radius"] = scene.radius
+    meta = dict(metadata(tbl))
+    meta.update({"pixel_size": pixel, "frame_interval": fi, "source": "sim.render ground truth",
+                 "focal_plane": scene.focal_plane, "movie": movie.name})
+    truth.attrs["ptrack"] = meta
+    truth_path = write_table(truth, out_dir / "truth.parquet")
+    params_path = out_dir / "params.json"
+    with atomic_output(params_path, "w") as fh:
+        json.dump(_jsonable(params), fh, indent=2, sort_keys=True)
+        fh.write("\n")
+    return {"movie": movie, "truth": truth_path, "params": params_path}
+
+
+def _jsonable(v):
+    if isinstance(v, dict):
+        return {str(k): _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(x) for x in v]
+    if isinstance(v, (np.floating, np.integer)):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, Path):
+        return str(v)
+    return v

@@ -1,0 +1,100 @@
+"""Command-line options shared by ``ptrack render`` and ``ptrack render-calibration``, and their preview plots."""
+from __future__ import annotations
+
+import argparse
+import re
+from pathlib import Path
+
+import numpy as np
+
+from ptrack.errors import UserError
+
+from .camera import Camera
+from .optics import Optics
+
+_OPT = Optics()
+_CAM = Camera()
+
+
+def add_optics_camera_arguments(p: argparse.ArgumentParser) -> None:
+    """Optics and camera options (SI units; defaults: the seed's 63x / NA 0.75 objective and Zyla 5.5 camera)."""
+    # let negative numbers in scientific notation (e.g. --focal-plane -2e-6) be values, not options
+    p._negative_number_matcher = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$")
+    g = p.add_argument_group("optics (SI units)")
+    g.add_argument("--na", type=float, default=_OPT.na, help=f"numerical aperture (default {_OPT.na})")
+    g.add_argument("--wavelength", type=float, default=_OPT.wavelength, help=f"emission wavelength, m (default {_OPT.wavelength:g})")
+    g.add_argument("--medium-index", type=float, default=_OPT.medium_index, help=f"refractive index of the sample medium (default {_OPT.medium_index})")
+    g.add_argument("--immersion-index", type=float, default=_OPT.immersion_index, help=f"refractive index of the immersion medium (default {_OPT.immersion_index})")
+    g.add_argument("--magnification", type=float, default=_OPT.magnification, help=f"magnification (default {_OPT.magnification:g})")
+    g.add_argument("--astigmatism", type=float, default=_OPT.astigmatism,
+                   help="astigmatic wavefront amplitude at the pupil edge, m (cylindrical lens; 0 = none; e.g. 1.2e-7)")
+    g.add_argument("--radius", type=float, default=None, help="particle radius, m (default: the table's 'radius' column, else a point source)")
+    c = p.add_argument_group("camera and light")
+    c.add_argument("--pixel-pitch", type=float, default=_CAM.pixel_pitch, help=f"camera pixel pitch, m (default {_CAM.pixel_pitch:g})")
+    c.add_argument("--photons", type=float, default=_CAM.photons, help=f"photons per particle per exposure (brightfield: removed from the background) (default {_CAM.photons:g})")
+    c.add_argument("--background", type=float, default=_CAM.background, help=f"background photons per pixel per exposure (default {_CAM.background:g})")
+    c.add_argument("--qe", type=float, default=_CAM.quantum_efficiency, help=f"quantum efficiency (default {_CAM.quantum_efficiency})")
+    c.add_argument("--read-noise", type=float, default=_CAM.read_noise, help=f"read noise, e- rms (default {_CAM.read_noise})")
+    c.add_argument("--gain", type=float, default=_CAM.gain, help=f"gain, ADU per e- (default {_CAM.gain})")
+    c.add_argument("--offset", type=float, default=_CAM.offset, help=f"offset, ADU (default {_CAM.offset:g})")
+    c.add_argument("--bit-depth", type=int, default=_CAM.bit_depth, help=f"bit depth (default {_CAM.bit_depth})")
+    c.add_argument("--brightfield", action="store_true", help="dark particles on a bright background")
+    c.add_argument("--compress", action="store_true", help="lossless zlib compression of the TIFF")
+    c.add_argument("--seed", type=int, default=0, help="noise seed (same seed, byte-identical output; default 0)")
+
+
+def optics_camera_from_args(a, exposure=None) -> tuple[Optics, Camera]:
+    optics = Optics(na=a.na, wavelength=a.wavelength, medium_index=a.medium_index, immersion_index=a.immersion_index,
+                    magnification=a.magnification, astigmatism=a.astigmatism)
+    camera = Camera(pixel_pitch=a.pixel_pitch, quantum_efficiency=a.qe, read_noise=a.read_noise, gain=a.gain,
+                    offset=a.offset, bit_depth=a.bit_depth, photons=a.photons, background=a.background, exposure=exposure)
+    return optics, camera
+
+
+def check_out_dir(out) -> Path:
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out {out} exists and is not a directory", "give a directory path")
+    return out
+
+
+def save_montage(images, titles, path, ncols: int = 6, overlay=None, title: str | None = None) -> Path:
+    """Grey-scale montage PNG of a few images; ``overlay``: list of (x_px, y_px) arrays to circle."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = len(images)
+    ncols = min(ncols, n)
+    nrows = (n + ncols - 1) // ncols
+    fig, axes = plt.subplots(nrows, ncols, figsize=(2.6 * ncols, 2.6 * nrows + (0.4 if title else 0)), squeeze=False)
+    for ax in axes.ravel():
+        ax.axis("off")
+    for i, (img, t) in enumerate(zip(images, titles)):
+        ax = axes.ravel()[i]
+        ax.imshow(img, cmap="gray", interpolation="nearest")
+        if overlay is not None and overlay[i] is not None:
+            x, y = overlay[i]
+            ax.scatter(x, y, s=40, facecolors="none", edgecolors="r", linewidths=0.7)
+            ax.set_xlim(-0.5, img.shape[1] - 0.5)
+            ax.set_ylim(img.shape[0] - 0.5, -0.5)
+        ax.set_title(t, fontsize=8)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def preview_pages(tiff_path, pages):
+    """Read a few pages of a TIFF (one page at a time)."""
+    import tifffile
+
+    with tifffile.TiffFile(tiff_path) as tf:
+        return [tf.pages[int(k)].asarray() for k in pages]
+
+
+def spread_indices(n: int, k: int = 6):
+    return sorted(set(np.linspace(0, n - 1, min(k, n)).round().astype(int).tolist()))
