@@ -1,0 +1,379 @@
+"""Height (z) from a defocus calibration stack: General Defocusing Particle Tracking.
+
+The method of Barnkob, Kaehler and Rossi (GDPT; the seed's chapter 4): a
+calibration stack holds images of one particle at known heights z_k (page k).
+Each particle image in a movie is compared with every calibration image by
+zero-normalised cross-correlation (OpenCV ``matchTemplate`` with
+``TM_CCOEFF_NORMED``); the best page gives z and its correlation is the
+particle's ``cm``. Between calibration steps z is refined by a parabola
+through Cm(z) at the best page and its two neighbours, and x, y by a parabola
+through the correlation peak (the defocused image's own centre, not a spot
+fit). Matches below a correlation threshold are dropped (GDPT's Cm_min).
+
+Templates: each page is background-subtracted (median of its border), the
+particle centre is found per page (thresholded centroid; a stack that drifts
+sideways is fine), and a square window of the same size for every page is cut
+around it; the sub-pixel position of the particle inside each template is
+kept, so the reported x, y is the particle centre.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .errors import UserError, check_positive, require_file
+
+__all__ = ["Calibration", "read_calib_z", "build_calibration", "load_calibration", "check_pixel_size",
+           "detect_blobs", "match_templates", "locate_3d"]
+
+
+@dataclass
+class Calibration:
+    """Templates of one particle at known heights.
+
+    Attributes
+    ----------
+    templates : ndarray, shape (K, T, T), float32
+        Background-subtracted calibration images, T odd.
+    z : ndarray, shape (K,)
+        Height of each template (m), strictly increasing.
+    centers : ndarray, shape (K, 2)
+        (row, col) of the particle centre inside each template (px).
+    pixel_size : float or None
+        m per pixel of the stack.
+    source : str
+    """
+
+    templates: np.ndarray
+    z: np.ndarray
+    centers: np.ndarray
+    pixel_size: float | None = None
+    source: str = ""
+    info: dict = field(default_factory=dict)
+
+    @property
+    def size(self) -> int:
+        return int(self.templates.shape[1])
+
+    @property
+    def depth(self) -> float:
+        """Calibrated depth range z_max - z_min (m)."""
+        return float(self.z[-1] - self.z[0])
+
+    @property
+    def step(self) -> float:
+        """Median calibration step (m)."""
+        return float(np.median(np.diff(self.z))) if len(self.z) > 1 else float("nan")
+
+
+def read_calib_z(path, n_pages: int) -> np.ndarray:
+    """Heights (m) of the pages of a calibration stack from a CSV with columns ``page``, ``z``.
+
+    Raises
+    ------
+    UserError
+        Missing columns, pages not covering 0..n_pages-1, non-finite z.
+    """
+    path = require_file(path, "calibration z file")
+    try:
+        df = pd.read_csv(path, comment="#")
+    except Exception as exc:
+        raise UserError(f"cannot read {path} as CSV: {exc}", "give a CSV with columns page, z (m)") from None
+    cols = {c.strip().lower(): c for c in df.columns}
+    if "page" not in cols or "z" not in cols:
+        raise UserError(f"{path} lacks columns page, z (has {', '.join(map(str, df.columns))})",
+                        "give a CSV with columns page (0-based) and z (m)")
+    page = pd.to_numeric(df[cols["page"]], errors="coerce").to_numpy()
+    z = pd.to_numeric(df[cols["z"]], errors="coerce").to_numpy(dtype=float)
+    if not np.all(np.isfinite(z)) or not np.all(np.isfinite(page)):
+        raise UserError(f"{path} has non-numeric page or z values", "give numbers (z in m)")
+    page = page.astype(int)
+    if sorted(page.tolist()) != list(range(n_pages)):
+        raise UserError(f"{path} lists {len(page)} pages ({page.min()}..{page.max()}), the stack has {n_pages}",
+                        f"give one row per page 0..{n_pages - 1}")
+    out = np.empty(n_pages)
+    out[page] = z
+    if np.abs(out).max() > 0.01:
+        raise UserError(f"{path}: z values up to {np.abs(out).max():g} look like micrometres, not metres",
+                        "give z in metres (e.g. 2e-6 for 2 um)")
+    return out
+
+
+def _page_centre(img, noise):
+    thr = max(3 * noise, 0.2 * float(img.max()))
+    w = np.clip(img - thr, 0, None)
+    s = w.sum()
+    if s <= 0:
+        return None
+    r = np.arange(img.shape[0])
+    c = np.arange(img.shape[1])
+    cy = float((w.sum(1) * r).sum() / s)
+    cx = float((w.sum(0) * c).sum() / s)
+    # radius holding 95 % of the excess intensity
+    pos = np.clip(img, 0, None)
+    rr, cc = np.indices(img.shape)
+    d = np.hypot(rr - cy, cc - cx).ravel()
+    order = np.argsort(d)
+    cum = np.cumsum(pos.ravel()[order])
+    r95 = float(d[order][np.searchsorted(cum, 0.95 * cum[-1])]) if cum[-1] > 0 else 3.0
+    return cy, cx, r95
+
+
+def build_calibration(stack, z, pixel_size=None, template_size: int | None = None, brightfield: bool = False,
+                      source: str = "") -> Calibration:
+    """Templates from a calibration stack held in memory.
+
+    Parameters
+    ----------
+    stack : array (K, H, W)
+        One image of the calibration particle per height.
+    z : array (K,)
+        Heights (m); pages are sorted by z.
+    pixel_size : float, optional
+        m per pixel.
+    template_size : int, optional
+        Template side (px, made odd); default from the largest particle image.
+    brightfield : bool
+        Invert the pages first (dark particles).
+    """
+    from .preprocess import noise_sigma
+
+    stack = np.asarray(stack, dtype=np.float32)
+    z = np.asarray(z, dtype=float)
+    if stack.ndim != 3 or len(stack) != len(z):
+        raise UserError(f"calibration stack of shape {stack.shape} with {len(z)} heights",
+                        "give one height per page")
+    if len(z) < 3:
+        raise UserError(f"calibration stack has {len(z)} pages", "a calibration needs at least 3 heights")
+    order = np.argsort(z)
+    stack, z = stack[order], z[order]
+    if np.any(np.diff(z) <= 0):
+        raise UserError("calibration heights are not distinct", "give one distinct z per page")
+    if brightfield:
+        stack = stack.max() - stack
+    K, H, W = stack.shape
+    pages, found = [], []
+    for k in range(K):
+        p = stack[k]
+        border = np.concatenate([p[0], p[-1], p[:, 0], p[:, -1]])
+        p = p - np.median(border)
+        noise = 1.4826 * float(np.median(np.abs(border - np.median(border)))) + 1e-6
+        pages.append(p)
+        found.append(_page_centre(p, noise))
+    if any(f is None for f in found):
+        bad = [int(k) for k, f in enumerate(found) if f is None]
+        raise UserError(f"no particle visible in calibration page(s) {bad[:5]}", "crop the stack to the calibrated range")
+    if template_size is None:
+        r = max(f[2] for f in found)
+        template_size = int(2 * math.ceil(1.15 * r) + 1)
+    T = int(template_size) | 1
+    max_t = min(H, W) if min(H, W) % 2 else min(H, W) - 1
+    T = min(T, max_t)
+    h = T // 2
+    templates = np.zeros((K, T, T), np.float32)
+    centers = np.zeros((K, 2))
+    for k, (p, (cy, cx, _)) in enumerate(zip(pages, found)):
+        r0 = int(round(cy)) - h
+        c0 = int(round(cx)) - h
+        padded = np.zeros((T, T), np.float32)
+        rs, cs = max(r0, 0), max(c0, 0)
+        re, ce = min(r0 + T, H), min(c0 + T, W)
+        padded[rs - r0:re - r0, cs - c0:ce - c0] = p[rs:re, cs:ce]
+        templates[k] = padded
+        centers[k] = (cy - r0, cx - c0)
+    flat = templates.reshape(K, -1)
+    if np.any(flat.std(1) == 0):
+        raise UserError("a calibration template is constant", "check the calibration stack")
+    return Calibration(templates, z, centers, pixel_size, source, {"template_size": T})
+
+
+def load_calibration(path, z_csv=None, z_step: float | None = None, z0: float = 0.0, pixel_size=None,
+                     template_size: int | None = None, brightfield: bool = False) -> Calibration:
+    """Read a calibration stack (any movie format of :func:`ptrack.io.open_movie`) and build its templates.
+
+    Heights: ``z_csv`` (CSV with columns page, z in m), or ``z_step``
+    (page k at ``z0 + k z_step``).
+    """
+    from .io import open_movie
+
+    if z_csv is None and z_step is None:
+        raise UserError("the heights of the calibration pages are not given",
+                        "give --calib-z CSV (columns page, z in m) or --calib-step DZ (m) [--calib-z0 Z0]")
+    with open_movie(path, pixel_size=pixel_size) as mv:
+        K = len(mv)
+        if K < 3:
+            raise UserError(f"calibration stack {path} has {K} page(s)", "a calibration needs at least 3 heights")
+        stack = np.stack([mv[i] for i in range(K)])
+        px = mv.pixel_size
+    if z_csv is not None:
+        z = read_calib_z(z_csv, K)
+    else:
+        dz = check_positive("calibration step", z_step)
+        z = float(z0) + dz * np.arange(K)
+    return build_calibration(stack, z, px, template_size, brightfield, source=str(path))
+
+
+def check_pixel_size(calib: Calibration, pixel_size: float | None, rtol: float = 0.01) -> None:
+    """Raise UserError if the stack's pixel size differs from the movie's by more than ``rtol``."""
+    if calib.pixel_size is None or pixel_size is None:
+        return
+    if abs(calib.pixel_size - pixel_size) > rtol * pixel_size:
+        raise UserError(
+            f"calibration stack {calib.source} has pixel size {calib.pixel_size * 1e9:.1f} nm, "
+            f"the movie {pixel_size * 1e9:.1f} nm",
+            "record the calibration with the same objective, camera and binning as the movie")
+
+
+def detect_blobs(img, sigma: float = 2.0, snr: float = 6.0, min_area: int = 4, close: int = 3):
+    """Candidate particle centres for defocused images: connected regions above threshold.
+
+    Parameters
+    ----------
+    img : 2D float32
+        Background-subtracted frame.
+    sigma : float
+        Smoothing (px) before thresholding.
+    snr : float
+        Threshold in units of the smoothed image's noise.
+    min_area : int
+        Smallest region (px).
+    close : int
+        Dilation (px) joining the pieces of a ring.
+
+    Returns
+    -------
+    rows, cols : ndarray of float
+        Intensity-weighted centroids (px).
+    area : ndarray of int
+    """
+    import cv2
+
+    from .preprocess import median3, noise_sigma
+
+    sm = cv2.GaussianBlur(median3(img), (0, 0), sigmaX=float(sigma))
+    thr = float(np.median(sm[::5, ::5])) + snr * max(noise_sigma(sm), 1e-6)
+    mask = (sm > thr).astype(np.uint8)
+    if close > 0:
+        mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * close + 1, 2 * close + 1)))
+    n, labels, stats, cent = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    keep = np.nonzero(stats[1:, cv2.CC_STAT_AREA] >= min_area)[0] + 1
+    if keep.size == 0:
+        return np.zeros(0), np.zeros(0), np.zeros(0, int)
+    w = np.clip(sm - thr, 0, None).ravel()
+    lab = labels.ravel()
+    rr, cc = np.divmod(np.arange(lab.size), sm.shape[1])
+    sw = np.bincount(lab, w, minlength=n)
+    sr = np.bincount(lab, w * rr, minlength=n)
+    sc = np.bincount(lab, w * cc, minlength=n)
+    ok = keep[sw[keep] > 0]
+    return sr[ok] / sw[ok], sc[ok] / sw[ok], stats[ok, cv2.CC_STAT_AREA]
+
+
+def _parabola_vertex(x0, x1, x2, y0, y1, y2):
+    """Vertex of the parabola through three points (x1 the middle); falls back to x1."""
+    d0, d2 = x0 - x1, x2 - x1
+    den = d0 * d2 * (d0 - d2)
+    if den == 0:
+        return x1, y1
+    a = (d2 * (y0 - y1) - d0 * (y2 - y1)) / den
+    b = (d0 * d0 * (y2 - y1) - d2 * d2 * (y0 - y1)) / den
+    if a >= 0:
+        return x1, y1
+    t = -b / (2 * a)
+    t = min(max(t, min(d0, d2)), max(d0, d2))
+    return x1 + t, y1 + b * t + a * t * t
+
+
+def match_templates(img, rows, cols, calib: Calibration, margin: int = 4, cm_min: float = 0.5,
+                    smooth: float = 1.0):
+    """z, refined x, y and Cm of particles near (rows, cols) by normalised cross-correlation.
+
+    Parameters
+    ----------
+    img : 2D float32
+        Background-subtracted frame (particles bright).
+    rows, cols : array_like
+        Approximate particle centres (px).
+    calib : Calibration
+    margin : int
+        Search +- margin px around each centre.
+    cm_min : float
+        Drop matches with a lower correlation.
+    smooth : float
+        Gaussian smoothing (px) of frame and templates before correlating
+        (0: none). Defocused images spread their photons over many pixels;
+        smoothing both sides raises Cm of dim images without moving the peak.
+
+    Returns
+    -------
+    pandas.DataFrame
+        ``x_px``, ``y_px`` (px), ``z`` (m), ``cm``, ``page`` (best template), ``mass``.
+    """
+    import cv2
+
+    T = calib.size
+    h = T // 2
+    m = int(margin)
+    pad = h + m + 1
+    img = np.ascontiguousarray(img, np.float32)
+    tmpl = calib.templates
+    if smooth and smooth > 0:
+        img = cv2.GaussianBlur(img, (0, 0), sigmaX=float(smooth))
+        tmpl = np.stack([cv2.GaussianBlur(t, (0, 0), sigmaX=float(smooth)) for t in tmpl])
+    padded = cv2.copyMakeBorder(img, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0.0)
+    K = len(calib.z)
+    out = {k: [] for k in ("x_px", "y_px", "z", "cm", "page", "mass")}
+    for r, c in zip(np.asarray(rows, float), np.asarray(cols, float)):
+        ri, ci = int(round(r)) + pad, int(round(c)) + pad
+        win = padded[ri - h - m: ri + h + m + 1, ci - h - m: ci + h + m + 1]
+        if win.std() == 0:
+            continue
+        maps = np.stack([cv2.matchTemplate(win, tmpl[k], cv2.TM_CCOEFF_NORMED) for k in range(K)])
+        peak = maps.reshape(K, -1).max(1)
+        k = int(np.argmax(peak))
+        cm = float(peak[k])
+        if not np.isfinite(cm) or cm < cm_min:
+            continue
+        if 0 < k < K - 1:
+            z, cmz = _parabola_vertex(calib.z[k - 1], calib.z[k], calib.z[k + 1], peak[k - 1], peak[k], peak[k + 1])
+        else:
+            z, cmz = calib.z[k], cm
+        mp = maps[k]
+        i, j = np.unravel_index(int(np.argmax(mp)), mp.shape)
+        di = dj = 0.0
+        if 0 < i < mp.shape[0] - 1:
+            di = _parabola_vertex(-1.0, 0.0, 1.0, mp[i - 1, j], mp[i, j], mp[i + 1, j])[0]
+        if 0 < j < mp.shape[1] - 1:
+            dj = _parabola_vertex(-1.0, 0.0, 1.0, mp[i, j - 1], mp[i, j], mp[i, j + 1])[0]
+        # template top-left at window (i, j) -> frame coordinates
+        y = (ri - pad) - h - m + i + di + calib.centers[k, 0]
+        x = (ci - pad) - h - m + j + dj + calib.centers[k, 1]
+        sub = win[i:i + T, j:j + T]
+        out["x_px"].append(x)
+        out["y_px"].append(y)
+        out["z"].append(z)
+        out["cm"].append(min(cm, 1.0))
+        out["page"].append(k)
+        out["mass"].append(float(np.clip(sub, 0, None).sum()))
+    df = pd.DataFrame(out)
+    if len(df) > 1:
+        # one particle found twice (ring split in pieces): keep the better correlation
+        df = df.sort_values("cm", ascending=False).reset_index(drop=True)
+        from scipy.spatial import cKDTree
+
+        pairs = cKDTree(df[["x_px", "y_px"]].to_numpy()).query_pairs(max(2.0, h / 2))
+        drop = {max(a, b) for a, b in pairs}
+        if drop:
+            df = df.drop(index=sorted(drop)).reset_index(drop=True)
+    return df
+
+
+def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, margin: int = 4,
+              cm_min: float = 0.5, min_area: int = 4, smooth: float = 1.0) -> pd.DataFrame:
+    """Detect defocused particles in a background-subtracted frame and measure x, y, z, Cm."""
+    rows, cols, _ = detect_blobs(img, sigma=sigma, snr=snr, min_area=min_area)
+    return match_templates(img, rows, cols, calib, margin=margin, cm_min=cm_min, smooth=smooth)

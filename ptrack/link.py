@@ -1,0 +1,146 @@
+"""Linking localisations into trajectories (trackpy) and drift removal.
+
+:func:`link` wraps ``trackpy.link`` on pixel coordinates. The search range
+is estimated from the data when not given (trackpy makes every user guess
+it): a first pass with a range set by the typical nearest-neighbour distance,
+then a second with 5 standard deviations of the measured per-axis step plus
+the localisation error, capped by the nearest-neighbour bound. In 3D the
+z axis gets its own search range: it carries the z step and the (larger) z
+uncertainty, so z is scaled by its uncertainty rather than mixed in with the
+lateral pixels.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from .errors import UserError
+
+__all__ = ["nearest_neighbour_distance", "link", "filter_short", "drift", "subtract_drift"]
+
+
+def nearest_neighbour_distance(features: pd.DataFrame, n_frames: int = 10) -> float:
+    """Median distance (px) from each localisation to its nearest neighbour in the same frame (inf if alone)."""
+    from scipy.spatial import cKDTree
+
+    frames = np.unique(features["frame"].to_numpy())
+    frames = frames[np.linspace(0, len(frames) - 1, min(n_frames, len(frames))).astype(int)] if len(frames) else frames
+    d = []
+    for f in frames:
+        pts = features.loc[features["frame"] == f, ["x_px", "y_px"]].to_numpy()
+        if len(pts) > 1:
+            dd, _ = cKDTree(pts).query(pts, k=2)
+            d.append(dd[:, 1])
+    return float(np.median(np.concatenate(d))) if d else float("inf")
+
+
+def _trackpy_link(features, search_range, memory, pos_columns):
+    import trackpy
+
+    trackpy.quiet()
+    try:
+        return trackpy.link(features, search_range, memory=memory, pos_columns=list(pos_columns), t_column="frame",
+                            adaptive_stop=0.3, adaptive_step=0.8)
+    except Exception as exc:  # SubnetOversize etc.
+        raise UserError(f"linking failed with search range {search_range}: {type(exc).__name__}: {exc}",
+                        "give a smaller --search-range (px) or reduce the particle density") from None
+
+
+def link(features: pd.DataFrame, search_range: float | None = None, memory: int = 3, pixel_size: float | None = None,
+         z_search_range: float | None = None) -> pd.DataFrame:
+    """Link per-frame localisations into trajectories.
+
+    Parameters
+    ----------
+    features : DataFrame
+        Columns ``frame``, ``x_px``, ``y_px`` (px) and optionally ``z`` (m)
+        and ``sigma_x_px`` (px).
+    search_range : float, optional
+        Largest lateral displacement between frames (px); estimated if None.
+    memory : int
+        Frames a particle may vanish (blink, leave focus) and keep its id.
+    pixel_size : float, optional
+        m per px (needed for 3D linking).
+    z_search_range : float, optional
+        Largest z displacement between frames (m); estimated if None.
+
+    Returns
+    -------
+    DataFrame
+        ``features`` with an integer ``particle`` column; ``attrs['link']``
+        records the search ranges used.
+    """
+    if len(features) == 0:
+        out = features.assign(particle=np.zeros(0, np.int64))
+        out.attrs["link"] = {"search_range_px": search_range}
+        return out
+    feats = features.reset_index(drop=True).copy()
+    three_d = "z" in feats.columns and np.isfinite(feats["z"].to_numpy()).any()
+    if three_d:
+        if pixel_size is None:
+            raise UserError("3D linking needs the pixel size", "give --pixel-size")
+        feats = feats[np.isfinite(feats["z"].to_numpy())].reset_index(drop=True)
+        feats["z_px"] = feats["z"] / pixel_size
+    nn = nearest_neighbour_distance(feats)
+    cap = float(np.clip(nn, 5.0, 80.0)) if np.isfinite(nn) else 80.0
+    sr = float(search_range) if search_range is not None else min(max(0.45 * nn, 5.0), 50.0)
+    pos = ["y_px", "x_px"]
+    rng_ = (sr, sr)
+    if three_d:
+        zsr = z_search_range / pixel_size if z_search_range is not None else max(4.0 * sr, 1.0)
+        pos = ["z_px", "y_px", "x_px"]
+        rng_ = (zsr, sr, sr)
+    linked = _trackpy_link(feats, rng_, memory, pos)
+    # refine (a few rounds): 5 robust standard deviations of the measured steps per axis, +1 px
+    # for localisation error, capped by the nearest-neighbour distance; a range cut short by
+    # the first guess under-estimates the steps, so repeat until the range stops growing.
+    for _ in range(4):
+        if search_range is not None and (not three_d or z_search_range is not None):
+            break
+        lk = linked.sort_values(["particle", "frame"])
+        same = lk["particle"].to_numpy()[1:] == lk["particle"].to_numpy()[:-1]
+        step = (lk["frame"].to_numpy()[1:] - lk["frame"].to_numpy()[:-1])[same]
+        if same.sum() < 10:
+            break
+        def robust(col):
+            d = np.diff(lk[col].to_numpy())[same] / np.sqrt(step)
+            return 1.4826 * np.median(np.abs(d - np.median(d)))
+        s = max(robust("x_px"), robust("y_px"))
+        new_sr = float(np.clip(5.0 * s + 1.0, 2.0, cap)) if search_range is None else sr
+        new_rng = (new_sr, new_sr)
+        if three_d:
+            zsr = z_search_range / pixel_size if z_search_range is not None else float(max(5.0 * robust("z_px") + 1.0, 2.0))
+            new_rng = (zsr, new_sr, new_sr)
+        if np.allclose(new_rng, rng_, rtol=0.05):
+            break
+        linked = _trackpy_link(feats, new_rng, memory, pos)
+        rng_ = new_rng
+    linked = linked.drop(columns=[c for c in ("z_px",) if c in linked.columns and c not in features.columns])
+    linked["particle"] = linked["particle"].astype(np.int64)
+    linked = linked.reset_index(drop=True)
+    linked.attrs["link"] = {"search_range_px": float(rng_[-1]), "memory": int(memory)}
+    if three_d:
+        linked.attrs["link"]["z_search_range_m"] = float(rng_[0] * pixel_size)
+    return linked
+
+
+def filter_short(linked: pd.DataFrame, min_length: int = 5) -> pd.DataFrame:
+    """Drop trajectories with fewer than ``min_length`` localisations."""
+    n = linked.groupby("particle")["frame"].transform("size")
+    out = linked[n.to_numpy() >= int(min_length)].reset_index(drop=True)
+    out.attrs.update(linked.attrs)
+    return out
+
+
+def drift(df: pd.DataFrame, axes=("x", "y")) -> pd.DataFrame:
+    """Ensemble drift of a trajectories table (delegates to :func:`ptrack.msd.drift`)."""
+    from . import msd
+
+    return msd.drift(df, axes=axes)
+
+
+def subtract_drift(df: pd.DataFrame, axes=("x", "y")) -> pd.DataFrame:
+    """Trajectories with the ensemble drift removed (delegates to :func:`ptrack.msd.subtract_drift`)."""
+    from . import msd
+
+    return msd.subtract_drift(df, axes=axes)

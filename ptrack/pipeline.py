@@ -1,0 +1,493 @@
+"""The track and analyze chains as Python functions.
+
+``track``: movie -> (preprocess -> detect -> localise [-> z by GDPT]) per frame
+-> link -> trajectories table (SI units + pixel columns), written atomically.
+
+``analyze``: track -> MSD / D per axis (:mod:`ptrack.msd`) -> Stokes-Einstein
+-> hindered-diffusion correction for each particle's height
+(:mod:`ptrack.wall`) -> non-diffusive tracks flagged -> plots + summary.
+
+Every step is also usable alone (:mod:`ptrack.io`, :mod:`ptrack.preprocess`,
+:mod:`ptrack.locate`, :mod:`ptrack.calibration`, :mod:`ptrack.link`).
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .errors import UserError, atomic_output, check_positive
+
+__all__ = ["locate_movie", "track_movie", "track_many", "analyze_movie", "default_output", "plot_tracks"]
+
+
+def _progress(total, desc, enabled):
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="frame", disable=not enabled, leave=False, dynamic_ncols=True)
+
+
+def locate_movie(movie, brightfield: bool = False, diameter: float | None = None, calib=None, snr: float = 7.0,
+                 gain: float = 1.0, offset: float = 0.0, read_noise: float = 0.0, background: str = "spatial",
+                 cm_min: float = 0.5, frames=None, progress: bool = True) -> tuple[pd.DataFrame, dict]:
+    """Localise the particles of every frame of an open movie.
+
+    Parameters
+    ----------
+    movie : ptrack.io.Movie
+    brightfield : bool
+        Dark particles on a bright field (inverted first).
+    diameter : float, optional
+        Particle image diameter (px, = 4 sigma of the spot); estimated from
+        the movie if None (2D only).
+    calib : ptrack.calibration.Calibration, optional
+        Defocus calibration: z by GDPT; without it the data are 2D.
+    snr : float
+        Detection threshold (noise units of the filtered image).
+    gain, offset, read_noise : float
+        Camera: ADU per photo-electron, baseline ADU, read noise (e- rms).
+    background : {"spatial", "temporal", "none"}
+    cm_min : float
+        Correlation threshold for z (3D).
+    frames : iterable of int, optional
+        Subset of frames.
+    progress : bool
+        tqdm bar on stderr.
+
+    Returns
+    -------
+    features : DataFrame
+        ``frame``, ``x_px``, ``y_px`` and the localiser's columns (``z`` in m
+        and ``cm`` in 3D).
+    info : dict
+        Settings used (``sigma_px``, ``background``...).
+    """
+    from . import calibration as cal_mod
+    from .io import check_not_blank
+    from .locate import diameter_to_sigma, estimate_sigma, locate, sigma_to_diameter
+    from .preprocess import prepare, temporal_background
+
+    check_not_blank(movie)
+    n = len(movie)
+    frames = range(n) if frames is None else list(frames)
+    info = {"brightfield": bool(brightfield), "background": background, "snr": float(snr),
+            "gain": float(gain), "offset": float(offset), "read_noise": float(read_noise)}
+    if diameter is not None:
+        sigma = diameter_to_sigma(check_positive("diameter", diameter))
+    elif calib is None:
+        sample = [movie[i] for i in np.unique(np.linspace(0, n - 1, min(3, n)).astype(int))]
+        sigma = estimate_sigma(sample, brightfield=brightfield, gain=gain, offset=offset)
+    else:
+        sigma = 2.0
+    info["sigma_px"] = float(sigma)
+    info["diameter_px"] = sigma_to_diameter(sigma)
+    bg_size = max(15.0, 12.0 * sigma) if calib is None else 3.0 * calib.size
+    bg = background
+    if background == "temporal":
+        bg = temporal_background(movie)
+        if brightfield:
+            bg = float(np.iinfo(movie.dtype).max if movie.dtype.kind in "ui" else bg.max()) - bg
+    elif background not in ("spatial", "none"):
+        raise UserError(f"background = {background!r} is not known", "use spatial, temporal or none")
+    chunks = []
+    with _progress(len(frames), Path(movie.source).name, progress) as bar:
+        for i in frames:
+            raw = movie[i]
+            img = prepare(raw, brightfield=brightfield, background=bg, bg_size=bg_size)
+            if calib is None:
+                df = locate(raw, img, sigma=sigma, snr=snr, gain=gain, offset=offset, read_noise=read_noise,
+                            brightfield=brightfield)
+            else:
+                df = cal_mod.locate_3d(img, calib, snr=snr, cm_min=cm_min)
+            df.insert(0, "frame", np.full(len(df), i, np.int64))
+            chunks.append(df)
+            bar.update(1)
+    feats = pd.concat(chunks, ignore_index=True) if chunks else pd.DataFrame()
+    if len(feats) == 0:
+        raise UserError(f"no particle found in {movie.source}",
+                        "check the movie (brightfield needs --brightfield), lower --snr or give --diameter")
+    return feats, info
+
+
+def default_output(movie_path, out_dir=None) -> Path:
+    """``<out_dir or .>/<movie stem>.traj.parquet``."""
+    p = Path(str(movie_path).rstrip("/*"))
+    stem = p.name
+    for suf in (".ome.tiff", ".ome.tif", ".tiff", ".tif", ".png"):
+        if stem.lower().endswith(suf):
+            stem = stem[: -len(suf)]
+            break
+    return Path(out_dir or ".") / f"{stem}.traj.parquet"
+
+
+def track_movie(movie, out=None, pixel_size: float | None = None, frame_interval: float | None = None,
+                calib=None, calib_z=None, calib_step: float | None = None, calib_z0: float = 0.0,
+                brightfield: bool = False, diameter: float | None = None, search_range: float | None = None,
+                memory: int = 3, min_length: int = 5, snr: float = 7.0, gain: float = 1.0, offset: float = 0.0,
+                read_noise: float = 0.0, background: str = "spatial", cm_min: float = 0.5,
+                progress: bool = True) -> tuple[pd.DataFrame, dict]:
+    """Movie -> trajectories table.
+
+    Parameters
+    ----------
+    movie : path-like
+        Movie file, folder or glob (:func:`ptrack.io.open_movie`).
+    out : path-like, optional
+        Write the table here (Parquet, or CSV by suffix), atomically.
+    pixel_size, frame_interval : float, optional
+        m per px and s per frame; override the metadata (required if absent).
+    calib : path-like or Calibration, optional
+        Defocus calibration stack for z; heights from ``calib_z`` (CSV page, z)
+        or ``calib_step`` (+ ``calib_z0``), m.
+    search_range : float, optional
+        Linking range (px); estimated if None.
+    memory : int
+        Frames a particle may be missed.
+    min_length : int
+        Shortest trajectory kept (frames).
+    Others : see :func:`locate_movie`.
+
+    Returns
+    -------
+    table : DataFrame
+        Trajectories table (:mod:`ptrack.table`) with x_px, y_px, mass, size,
+        ecc, signal, sigma_x, sigma_y (2D) or cm (3D).
+    summary : dict
+        ``n_frames``, ``n_localisations``, ``n_tracks``, ``wall_time_s``,
+        ``frames_per_s`` and the settings used.
+    """
+    from .calibration import Calibration, check_pixel_size, load_calibration
+    from .io import open_movie
+    from .link import filter_short, link
+    from .table import UNITS, make_table, write_table
+
+    t0 = time.perf_counter()
+    with open_movie(movie, pixel_size=pixel_size, frame_interval=frame_interval) as mv:
+        mv.require_calibration()
+        px, dt = mv.pixel_size, mv.frame_interval
+        cal = None
+        if calib is not None:
+            cal = calib if isinstance(calib, Calibration) else load_calibration(
+                calib, z_csv=calib_z, z_step=calib_step, z0=calib_z0, brightfield=brightfield)
+            check_pixel_size(cal, px)
+        elif calib_z is not None or calib_step is not None:
+            raise UserError("--calib-z/--calib-step given without --calib", "give the calibration stack with --calib")
+        feats, info = locate_movie(mv, brightfield=brightfield, diameter=diameter, calib=cal, snr=snr, gain=gain,
+                                   offset=offset, read_noise=read_noise, background=background, cm_min=cm_min,
+                                   progress=progress)
+        n_frames = len(mv)
+        source = mv.source
+        shape = mv.shape
+    n_loc = len(feats)
+    linked = link(feats, search_range=search_range, memory=memory, pixel_size=px)
+    link_info = dict(linked.attrs.get("link", {}))
+    linked = filter_short(linked, min_length)
+    if len(linked) == 0:
+        raise UserError(f"no trajectory of {min_length} or more frames in {source}",
+                        "lower --min-length, raise --memory or give a larger --search-range")
+    # renumber particles 0..n-1 in order of first appearance
+    first = linked.groupby("particle")["frame"].transform("min")
+    order = linked.assign(_f=first).sort_values(["_f", "particle"])["particle"].drop_duplicates().to_numpy()
+    linked["particle"] = linked["particle"].map({p: i for i, p in enumerate(order)}).astype(np.int64)
+    meta = {
+        "pixel_size": px, "frame_interval": dt, "source": str(source), "n_frames": n_frames,
+        "frame_shape": list(shape), "kind": "measured", "tracker": "ptrack", **info, "link": link_info,
+        "units": {**UNITS, "size": "px", "mass": "ADU", "signal": "ADU", "ecc": "1"},
+    }
+    opt = {"x_px": linked["x_px"], "y_px": linked["y_px"], "mass": linked["mass"]}
+    if cal is None:
+        opt.update(size=linked["size"], ecc=linked["ecc"], signal=linked["signal"],
+                   sigma_x=linked["sigma_x_px"] * px, sigma_y=linked["sigma_y_px"] * px)
+        z = None
+    else:
+        opt.update(cm=linked["cm"])
+        z = linked["z"].to_numpy()
+        meta.update(calibration=str(cal.source), calib_depth=cal.depth, calib_step=cal.step,
+                    calib_template_px=cal.size, cm_min=float(cm_min))
+    table = make_table(linked["frame"], linked["frame"].to_numpy() * dt, linked["particle"],
+                       linked["x_px"].to_numpy() * px, linked["y_px"].to_numpy() * px, z, meta=meta, **opt)
+    wall = time.perf_counter() - t0
+    summary = {"movie": str(source), "n_frames": int(n_frames), "n_localisations": int(n_loc),
+               "n_tracks": int(table["particle"].nunique()), "wall_time_s": round(wall, 3),
+               "frames_per_s": round(n_frames / wall, 2) if wall > 0 else None,
+               "pixel_size_m": px, "frame_interval_s": dt, "diameter_px": info["diameter_px"],
+               "search_range_px": link_info.get("search_range_px"), "three_d": cal is not None}
+    if out is not None:
+        write_table(table, out)
+        summary["output"] = str(out)
+    return table, summary
+
+
+def _track_worker(movie, out, kwargs):
+    _, summary = track_movie(movie, out=out, progress=False, **kwargs)
+    return summary
+
+
+def track_many(movies, out_dir=None, scheduler: str | None = None, n_workers: int | None = None,
+               **kwargs) -> list[dict]:
+    """Track several movies as dask.distributed tasks, one output table per movie.
+
+    Parameters
+    ----------
+    movies : sequence of path-like
+    out_dir : path-like, optional
+        Directory for ``<stem>.traj.parquet`` files (default: current directory).
+    scheduler : str, optional
+        Address of a running dask scheduler; default a LocalCluster of
+        ``n_workers`` single-threaded processes.
+    **kwargs
+        As :func:`track_movie`.
+
+    Returns
+    -------
+    list of dict
+        One summary per movie (in the given order). A movie that failed has
+        ``error`` set; the others' outputs are complete.
+    """
+    import os
+
+    outs = [default_output(m, out_dir) for m in movies]
+    dup = {str(o) for o in outs if outs.count(o) > 1}
+    if dup:
+        raise UserError(f"several movies would write the same output {sorted(dup)[0]}",
+                        "rename the movies or track them separately with --out")
+    from dask.distributed import Client, LocalCluster
+
+    cluster = None
+    if scheduler:
+        client = Client(scheduler)
+    else:
+        nw = n_workers or max(1, min(len(movies), os.cpu_count() or 1))
+        cluster = LocalCluster(n_workers=nw, threads_per_worker=1, processes=True, dashboard_address=None)
+        client = Client(cluster)
+    try:
+        futs = [client.submit(_track_worker, str(m), str(o), kwargs, pure=False) for m, o in zip(movies, outs)]
+        from tqdm import tqdm
+
+        results = []
+        for m, f in zip(movies, tqdm(futs, desc="movies", unit="movie", disable=not kwargs.get("progress", True))):
+            try:
+                results.append(f.result())
+            except UserError as exc:
+                results.append({"movie": str(m), "error": str(exc)})
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    return results
+
+
+# ---------------------------------------------------------------------------
+# analyze
+# ---------------------------------------------------------------------------
+def _per_particle_D(table: pd.DataFrame, dt: float, motion_blur: float) -> pd.DataFrame:
+    """CVE D (x, y averaged) of each gap-free stretch-weighted track, m^2/s."""
+    rows = []
+    for p, g in table.groupby("particle", sort=True):
+        f = g["frame"].to_numpy()
+        if len(f) < 3:
+            continue
+        dx = np.diff(g["x"].to_numpy())
+        dy = np.diff(g["y"].to_numpy())
+        ok = np.diff(f) == 1
+        if ok.sum() < 2:
+            continue
+        ests = []
+        for d in (dx, dy):
+            d1 = d[ok]
+            both = ok[:-1] & ok[1:]
+            c = np.mean(d[:-1][both] * d[1:][both]) if both.any() else 0.0
+            ests.append(np.mean(d1 ** 2) / (2 * dt) + c / dt)
+        rows.append({"particle": int(p), "n_frames": int(len(f)), "D": float(np.mean(ests)),
+                     "z_mean": float(np.nanmean(g["z"])) if np.isfinite(g["z"]).any() else float("nan")})
+    return pd.DataFrame(rows)
+
+
+def plot_tracks(movie, table: pd.DataFrame, path, frame: int = 0, brightfield: bool = False) -> None:
+    """PNG of one frame with its detections (circles) and all trajectories (lines), pixel coordinates."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .io import open_movie
+
+    with open_movie(movie) as mv:
+        img = np.asarray(mv[min(frame, len(mv) - 1)], float)
+    lo, hi = np.percentile(img, [1, 99.8])
+    fig, ax = plt.subplots(figsize=(7, 7 * img.shape[0] / max(img.shape[1], 1) + 0.3))
+    ax.imshow(img, cmap="gray", vmin=lo, vmax=hi if hi > lo else lo + 1)
+    for _, g in table.groupby("particle"):
+        ax.plot(g["x_px"], g["y_px"], lw=0.8, alpha=0.8)
+    cur = table[table["frame"] == frame]
+    ax.scatter(cur["x_px"], cur["y_px"], s=80, facecolors="none", edgecolors="r", lw=1)
+    ax.set_title(f"frame {frame}: {len(cur)} detections (red), {table['particle'].nunique()} tracks")
+    ax.set_xlabel("x (px)")
+    ax.set_ylabel("y (px)")
+    fig.tight_layout()
+    with atomic_output(Path(path), None) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+
+
+def _save_fig(fig, path):
+    import matplotlib.pyplot as plt
+
+    with atomic_output(Path(path), None) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+
+
+def analyze_movie(movie, radius: float, viscosity: float, temperature: float, report_dir=None, out=None,
+                  wall_z: float = 0.0, height: float | None = None, subtract_drift: bool = False,
+                  estimator: str = "cve", motion_blur: float = 1 / 6, n_boot: int = 200, seed: int = 0,
+                  table: pd.DataFrame | None = None, **track_kwargs) -> dict:
+    """Track a movie and measure diffusion against Stokes-Einstein, with the wall correction.
+
+    Parameters
+    ----------
+    movie : path-like
+    radius : float
+        Particle radius (m).
+    viscosity : float
+        Pa s.
+    temperature : float
+        K.
+    report_dir : path-like, optional
+        Write ``summary.json`` and the PNG plots here (``tracks.png``,
+        ``msd.png``, ``D_per_particle.png``, ``cm_vs_z.png`` in 3D).
+    out : path-like, optional
+        Also write the trajectories table.
+    wall_z : float
+        z of the wall in the calibration's coordinates (m): heights are
+        ``z - wall_z`` (3D).
+    height : float, optional
+        Assumed centre height above the wall (m) for 2D data.
+    subtract_drift : bool
+        Remove the ensemble drift before estimating D.
+    estimator, motion_blur, n_boot, seed
+        Passed to :func:`ptrack.msd.estimate_diffusion`.
+    table : DataFrame, optional
+        Skip tracking and analyse this trajectories table.
+    **track_kwargs
+        As :func:`track_movie`.
+
+    Returns
+    -------
+    dict
+        ``D``, ``D_err`` (dicts axis -> m^2/s), ``D_stokes_einstein``,
+        ``D_over_D_SE``, ``n_tracks``, ``hindered`` (wall correction),
+        ``nondiffusive`` (flagged tracks), ``track`` (tracking summary).
+    """
+    from . import msd, wall
+    from .table import metadata
+
+    radius = check_positive("radius", radius)
+    viscosity = check_positive("viscosity", viscosity)
+    temperature = check_positive("temperature", temperature)
+    track_summary = {}
+    if table is None:
+        table, track_summary = track_movie(movie, out=out, **track_kwargs)
+    dt = float(metadata(table).get("frame_interval") or np.median(np.diff(np.unique(table["t"]))))
+    three_d = bool(np.isfinite(table["z"].to_numpy()).any())
+    axes = ("x", "y", "xy")
+    res = msd.estimate_diffusion(table, axes=axes, estimator=estimator, motion_blur=motion_blur, n_boot=n_boot,
+                                 seed=seed, subtract_drift=subtract_drift)
+    D_se = msd.stokes_einstein(radius, viscosity, temperature)
+    summary = {
+        "D": {k: float(v) for k, v in res.D.items()}, "D_err": {k: float(v) for k, v in res.D_err.items()},
+        "D_stokes_einstein": float(D_se), "D_over_D_SE": float(res.D["xy"] / D_se),
+        "n_tracks": int(table["particle"].nunique()), "n_localisations": int(len(table)),
+        "sigma_loc": {k: float(v) for k, v in res.sigma_loc.items()}, "estimator": res.estimator,
+        "drift_corrected": bool(res.drift_corrected), "radius_m": radius, "viscosity_Pa_s": viscosity,
+        "temperature_K": temperature, "frame_interval_s": dt,
+        "units": {"D": "m^2/s", "D_err": "m^2/s", "D_stokes_einstein": "m^2/s", "sigma_loc": "m"},
+    }
+    per = _per_particle_D(table, dt, motion_blur)
+    # hindered diffusion: expected D/D0 for each particle's height, and D corrected to bulk
+    hind = None
+    if three_d and len(per):
+        h = per["z_mean"].to_numpy() - wall_z
+        okh = np.isfinite(h) & (h > radius)
+        ratio = np.full(len(per), np.nan)
+        if okh.any():
+            ratio[okh] = wall.parallel_ratio(h[okh], radius)
+        per["height"] = h
+        per["ratio_parallel"] = ratio
+        w = per["n_frames"].to_numpy() * okh
+        if w.sum() > 0:
+            mean_ratio = float(np.sum(np.nan_to_num(ratio) * w) / w.sum())
+            hind = {"wall_z_m": wall_z, "mean_height_m": float(np.sum(np.nan_to_num(h) * w) / w.sum()),
+                    "mean_ratio_parallel": mean_ratio, "D_bulk_xy": float(res.D["xy"] / mean_ratio),
+                    "D_SE_hindered_xy": float(D_se * mean_ratio),
+                    "n_particles_below_contact": int((~okh).sum())}
+    elif height is not None:
+        hh = check_positive("height", height)
+        if hh <= radius:
+            raise UserError(f"height = {hh} m is not above the radius {radius} m", "give the centre height above the wall")
+        r = float(wall.parallel_ratio(hh, radius))
+        hind = {"assumed_height_m": hh, "ratio_parallel": r, "D_bulk_xy": float(res.D["xy"] / r),
+                "D_SE_hindered_xy": float(D_se * r)}
+    summary["hindered"] = hind
+    flags = msd.powerlaw_flags(table)
+    flagged = flags[flags["flagged"]]
+    summary["nondiffusive"] = {"n_flagged": int(len(flagged)), "n_assessed": int(np.isfinite(flags["alpha"]).sum()),
+                               "tracks": [{"particle": int(r.particle), "alpha": float(r.alpha), "reason": str(r.reason)}
+                                          for r in flagged.itertuples()]}
+    summary["track"] = track_summary
+    if report_dir is not None:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        rd = Path(report_dir)
+        rd.mkdir(parents=True, exist_ok=True)
+        if movie is not None:
+            plot_tracks(movie, table, rd / "tracks.png", frame=int(table["frame"].min()))
+        msd.plot_msd(res, rd / "msd.png", title=f"{Path(str(movie)).name}: ensemble MSD")
+        if len(per):
+            fig, ax = plt.subplots(figsize=(6, 4))
+            ax.bar(np.arange(len(per)), per["D"] * 1e12, color="C0")
+            ax.axhline(D_se * 1e12, color="k", ls="--", label="Stokes-Einstein")
+            ax.axhline(res.D["xy"] * 1e12, color="C1", label=f"ensemble ({res.estimator})")
+            if hind is not None:
+                ax.axhline(hind["D_SE_hindered_xy"] * 1e12, color="C2", ls=":", label="S-E x wall ratio")
+            ax.set_xlabel("track")
+            ax.set_ylabel("D (um^2/s)")
+            ax.legend()
+            ax.set_title("D per particle (CVE, x and y averaged)")
+            fig.tight_layout()
+            _save_fig(fig, rd / "D_per_particle.png")
+        if three_d:
+            fig, ax = plt.subplots(figsize=(6, 4))
+            ax.scatter(table["z"] * 1e6, table["cm"] if "cm" in table else np.ones(len(table)), s=3, alpha=0.4)
+            ax.set_xlabel("z (um)")
+            ax.set_ylabel("Cm")
+            ax.set_title("GDPT correlation against height")
+            fig.tight_layout()
+            _save_fig(fig, rd / "cm_vs_z.png")
+        per.to_csv(rd / "per_particle.csv", index=False)
+        flags.to_csv(rd / "nondiffusive.csv", index=False)
+        with atomic_output(rd / "summary.json", "w") as fh:
+            json.dump(_clean(summary), fh, indent=2)
+    return _clean(summary)
+
+
+def _clean(obj):
+    if isinstance(obj, dict):
+        return {str(k): _clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_clean(v) for v in obj]
+    if isinstance(obj, (np.floating, float)):
+        v = float(obj)
+        return v if math.isfinite(v) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
