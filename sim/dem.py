@@ -160,7 +160,7 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
                pos, image, vel, omega, force, torque, radius, mass, inertia, charge, gamma, fconst,
                drag_mode, extp, seed, model, cp, cpw, nf_model, nfp, rotation, walls, whist,
                start, nbj, shift, hist, ref_pos, cutoff, skin, lo, length, periodic, limits, diag,
-               force_rebuild_at_end):
+               dchunk, force_rebuild_at_end):
     """Advance up to ``nsteps`` steps.  Returns
     ``(status, steps_done, particle, start, nbj, shift, hist, ref_pos, n_builds)``.
 
@@ -266,6 +266,12 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
             _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt,
                     model, cp, cpw, nf_model, nfp, rotation, walls, whist, start, nbj, shift, hist,
                     force, torque, diag)
+        if diag[D_MAX_OVERLAP] > dchunk[0]:
+            dchunk[0] = diag[D_MAX_OVERLAP]
+        if diag[D_MAX_W2] > dchunk[1]:
+            dchunk[1] = diag[D_MAX_W2]
+        if diag[D_MAX_DAMP] > dchunk[2]:
+            dchunk[2] = diag[D_MAX_DAMP]
         if diag[D_MAX_OVERLAP] > limits[0]:
             return BLOWUP_OVERLAP, s + 1, int(diag[D_MAX_OVERLAP_I]), start, nbj, shift, hist, ref_pos, nbuild
         st, p = _check(pos, vel, radius, limits)
@@ -370,6 +376,7 @@ class DEMSystem:
         self.t = 0.0
         self.n_builds = 0
         self.diag = np.zeros(D_SIZE)
+        self.dchunk = np.zeros(3)
         self.status = OK
         self.fail_particle = -1
         from sim.neighbors import wrap_positions as _wrap
@@ -380,7 +387,7 @@ class DEMSystem:
 
     # ------------------------------------------------------------------ helpers
     def _has_bottom(self):
-        return any(np.allclose(w, [w[0], w[1], 0.0, 0.0, 0.0, 1.0]) for w in getattr(self, "walls", []))
+        return any(w[2] == 0.0 and w[5] == 1.0 for w in self.walls)
 
     @property
     def n(self):
@@ -417,13 +424,14 @@ class DEMSystem:
         On a blow-up the state is left at the failing step and
         ``self.fail_particle`` names the particle.
         """
+        self.dchunk = np.zeros(3)
         out = _run_chunk(int(nsteps), self.dt, self.step, self.integrator, self.phi, self.n_iter,
                          self.pos, self.image, self.vel, self.omega, self.force, self.torque, self.radius,
                          self.mass, self.inertia, self.charge, self.gamma, self.fconst, self.drag_mode,
                          self.extp, self.seed, self.model, self.cp, self.cpw, self.nf_model, self.nfp,
                          self.rotation, self.walls, self.whist, self.start, self.nbj, self.shift, self.hist,
                          self.ref_pos, self.cutoff, self.skin, self.lo, self.length, self.periodic, self.limits,
-                         self.diag, bool(rebuild_at_end))
+                         self.diag, self.dchunk, bool(rebuild_at_end))
         status, done, part, self.start, self.nbj, self.shift, self.hist, self.ref_pos, nb = out
         self.step += done
         self.t += done * self.dt
@@ -495,3 +503,300 @@ def critical_step(w2, damp_rate):
     w = math.sqrt(w2)
     zeta = damp_rate / (2.0 * w)
     return 2.0 / w * (math.sqrt(1.0 + zeta * zeta) - zeta)
+
+
+# --------------------------------------------------------------------------- scenes
+
+def scene_walls(scene):
+    """Wall planes (W, 6) of a scene: substrate, solid side walls, top plane."""
+    L = scene.domain.size
+    w = []
+    b = scene.boundaries
+    if b.bottom_wall:
+        w.append([0, 0, 0, 0, 0, 1])
+    if b.x == "wall":
+        w += [[0, 0, 0, 1, 0, 0], [L[0], 0, 0, -1, 0, 0]]
+    if b.y == "wall":
+        w += [[0, 0, 0, 0, 1, 0], [0, L[1], 0, 0, -1, 0]]
+    if b.top == "wall":
+        w.append([0, 0, L[2], 0, 0, -1])
+    return np.array(w, dtype=np.float64).reshape(-1, 6)
+
+
+def _power_force(cp, delta, ri, rj, wall):
+    """Seed power-law contact force magnitude (N) at overlap ``delta`` (vectorised)."""
+    delta = np.asarray(delta, dtype=float)
+    if wall:
+        eps = delta / ri
+        d = ri - delta
+        a2 = ri * ri - d * d
+    else:
+        d = ri + rj - delta
+        eps = delta / (ri + rj)
+        li = 0.5 * (d + (ri * ri - rj * rj) / d)
+        a2 = ri * ri - li * li
+    area = np.pi * np.clip(a2, 0, None)
+    return cp[0] * eps ** cp[1] * area, area
+
+
+def auto_dt(inter, radius, mass, fconst, gamma=None, drag=False, v0=None, height=1.0, n_layers=None):
+    """Time step (s) from the physics, and a dict saying why.
+
+    * contact: ``dt_safety`` x the velocity-Verlet stability limit of the
+      stiffest contact (Hooke: ``kn`` with the smallest reduced mass; power law:
+      the stiffness ``dF/d delta`` and damping ``c_cd A_c`` at a representative
+      overlap - the larger of the impact overlap, from the kinetic energy of a
+      particle that falls ``height`` under the external force, and the static
+      overlap under ``n_layers`` particles' weight);
+    * drag: ``0.2 m / gamma`` (momentum relaxation time);
+    * motion: a particle moves at most 5 % of the smallest radius per step.
+    """
+    from sim.forces.contact import CONTACT_HOOKE, CONTACT_POWER
+
+    rmin = float(np.min(radius))
+    mmin = float(np.min(mass))
+    amax = float(np.max(np.linalg.norm(fconst, axis=1) / mass)) if len(mass) else 0.0
+    vfree = math.sqrt(2.0 * amax * height)
+    vterm = np.inf
+    if drag and gamma is not None and np.all(np.asarray(gamma) > 0):
+        vterm = float(np.max(np.linalg.norm(fconst, axis=1) / gamma))
+    vimp = min(vfree, vterm) + (float(np.max(np.linalg.norm(v0, axis=1))) if v0 is not None and len(v0) else 0.0)
+    why = {}
+    dts = []
+    if n_layers is None:
+        n_layers = max(1.0, len(mass) ** (1.0 / 3.0))
+    for wall, cp in ((False, inter.cp), (True, inter.cpw)):
+        meff = mmin if wall else 0.5 * mmin
+        if inter.model == CONTACT_HOOKE:
+            w2 = cp[0] / meff
+            dc = critical_step(w2, 2.0 * cp[2] * math.sqrt(w2))
+        elif inter.model == CONTACT_POWER:
+            rj = rmin
+            deltas = np.geomspace(1e-7 * rmin, 0.5 * rmin, 4000)
+            F, area = _power_force(cp, deltas, rmin, rj, wall)
+            energy = np.concatenate([[0.0], np.cumsum(0.5 * (F[1:] + F[:-1]) * np.diff(deltas))])
+            k_imp = np.searchsorted(energy, 0.5 * meff * vimp**2)
+            k_stat = np.searchsorted(F, n_layers * mmin * amax)
+            k = min(max(k_imp, k_stat, 1), len(deltas) - 2)
+            stiff = (F[k + 1] - F[k - 1]) / (deltas[k + 1] - deltas[k - 1])
+            dc = critical_step(stiff / meff, cp[2] * area[k] / meff)
+            why[f"{'wall' if wall else 'pair'}_overlap_rep"] = float(deltas[k])
+        else:
+            continue
+        why[f"{'wall' if wall else 'pair'}_critical_dt"] = dc
+        dts.append(inter.dt_safety * dc)
+    if drag and gamma is not None and np.all(np.asarray(gamma) > 0):
+        tr = float(np.min(mass / gamma))
+        why["momentum_relaxation_time"] = tr
+        dts.append(0.2 * tr)
+    if vimp > 0:
+        why["impact_speed"] = vimp
+        dts.append(0.05 * rmin / vimp)
+    dt = float(min(dts)) if dts else 1e-6
+    why["dt"] = dt
+    return dt, why
+
+
+def system_from_scene(scene, state=None, dt=None):
+    """Build a :class:`DEMSystem` for a scene with pair interactions."""
+    from sim.scene import build_state, constant_force
+
+    inter = scene.interactions
+    st = build_state(scene) if state is None else state
+    fconst = constant_force(scene, st)
+    fl = scene.fluid
+    drag_mode = DRAG_SEED if fl.viscosity > 0 else DRAG_NONE
+    extp = np.array([*fl.velocity, fl.density, fl.viscosity, scene.kT, *scene.fields.B], dtype=np.float64)
+    periodic = (int(scene.boundaries.x == "periodic"), int(scene.boundaries.y == "periodic"), 0)
+    sysm = DEMSystem(st.pos, st.vel, st.radius, st.mass, st.charge, model=inter.model, cp=inter.cp, cpw=inter.cpw,
+                     nf_model=inter.nf_model, nfp=inter.nfp, rotation=inter.rotation, walls=scene_walls(scene),
+                     box_lo=(0, 0, 0), box_length=scene.domain.size, periodic=periodic, fconst=fconst,
+                     drag_mode=drag_mode, gamma=st.gamma, extp=extp, dt=1e-9 if dt is None else dt,
+                     skin=inter.skin, cutoff=inter.cutoff, seed=scene.seed, max_overlap=inter.max_overlap)
+    return sysm, st
+
+
+def _frame_df(frame, sysm):
+    n = sysm.n
+    up = sysm.unwrapped
+    import pandas as pd
+
+    return pd.DataFrame({
+        "frame": np.full(n, frame, dtype=np.int64), "t": np.full(n, sysm.t), "particle": np.arange(n, dtype=np.int64),
+        "x": up[:, 0], "y": up[:, 1], "z": up[:, 2],
+        "vx": sysm.vel[:, 0], "vy": sysm.vel[:, 1], "vz": sysm.vel[:, 2], "radius": sysm.radius.copy(),
+    })
+
+
+class DEMResult:
+    """What :func:`run_dem` did: attributes like :class:`sim.run.RunResult` plus a summary dict.
+
+    ``result["steps"]`` etc. read the summary (keys: steps, wall_time_s,
+    n_frames, dt_final, dt_min, dt_max, max_overlap_ratio, n_builds,
+    rollbacks, resumed_from_step).
+    """
+
+    def __init__(self, trajectories, scene_json, n_frames, wall_time_s, summary, system):
+        self.trajectories = trajectories
+        self.scene_json = scene_json
+        self.choice = None
+        self.n_frames = n_frames
+        self.wall_time_s = wall_time_s
+        self.summary = summary
+        self.system = system
+
+    def __getitem__(self, k):
+        return self.summary[k]
+
+    def keys(self):
+        return self.summary.keys()
+
+
+def run_dem(scene, out_dir, resume=False, progress=True, checkpoint_every=None, max_rollbacks=12):
+    """Run a scene with pair interactions; stream ``trajectories.parquet``.
+
+    Parameters
+    ----------
+    scene : sim.scene.Scene
+        With ``scene.interactions`` from :func:`sim.interactions.parse_interactions`.
+    out_dir : path-like
+        Receives ``trajectories.parquet`` (frame, t, particle, x, y, z
+        unwrapped, vx, vy, vz, radius), ``scene.json`` (resolved scene, dt and
+        why), ``checkpoint.npz`` (every ``checkpoint_every`` frames) and, on a
+        blow-up, ``last_good_state.npz``.
+    resume : bool
+        Continue from ``out_dir/checkpoint.npz``; the result equals the
+        uninterrupted run bit for bit.
+    progress : bool
+        tqdm bar on stderr.
+    checkpoint_every : int, optional
+        Output frames between checkpoints (default ``contact.checkpoint_every``).
+
+    Returns
+    -------
+    DEMResult
+
+    Raises
+    ------
+    UserError
+        Blow-up (overlap, NaN, substrate crossing, runaway speed) naming the
+        step, the particle and a suggested dt; the frames so far stay in the
+        trajectories file (marked incomplete) and the last good state is in
+        ``last_good_state.npz``.
+    """
+    import json
+    import sys
+    from pathlib import Path
+
+    from tqdm import tqdm
+
+    from ptrack.errors import UserError, atomic_output
+    from ptrack.table import TrajectoryWriter, read_table
+    from sim.checkpoint import load_checkpoint, save_checkpoint, scene_fingerprint
+
+    t_wall = time.perf_counter()
+    inter = scene.interactions
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    ck_every = inter.checkpoint_every if checkpoint_every is None else int(checkpoint_every)
+    sysm, st = system_from_scene(scene)
+    fixed_dt = scene.time.dt is not None
+    dt_auto, why = auto_dt(inter, st.radius, st.mass, sysm.fconst, st.gamma, drag=sysm.drag_mode != DRAG_NONE,
+                           v0=st.vel, height=float(np.max(st.pos[:, 2])) if st.n else 1.0)
+    dt0 = scene.time.dt if fixed_dt else dt_auto
+    sysm.dt = dt0
+    sdict = scene.to_dict()
+    fp = scene_fingerprint(sdict)
+    n_out = int(round(scene.time.final / scene.time.output_interval))
+    dt_out = scene.time.output_interval
+    traj_path = out_dir / "trajectories.parquet"
+    ck_path = out_dir / "checkpoint.npz"
+    resolved = {"scene": sdict, "engine": "dem", "contact_model": inter.model_name,
+                "dt": dt0, "dt_mode": "fixed (time.dt)" if fixed_dt else "auto + adaptive" if inter.adaptive_dt else "auto",
+                "dt_reason": why, "n_output_frames": n_out + 1, "units": "SI",
+                "coordinates": "unwrapped across periodic sides"}
+    scene_json = out_dir / "scene.json"
+    with atomic_output(scene_json, "w") as fh:
+        json.dump(resolved, fh, indent=2, default=float)
+    meta = {"source": "sim-dem", "frame_interval": dt_out, "scene": scene.source, "dt": dt0, "seed": scene.seed,
+            "contact_model": inter.model_name}
+    frame = 0
+    resumed_from = None
+    old = None
+    if resume:
+        data, head = load_checkpoint(ck_path, fp)
+        sysm.set_state(data)
+        frame = int(head["frame"])
+        resumed_from = sysm.step
+        if traj_path.exists():
+            old = read_table(traj_path, validate_table=False)
+            old = old[old["frame"] <= frame]
+    writer = TrajectoryWriter(traj_path, meta)
+    bar = tqdm(total=n_out, initial=frame, desc="dem", unit="frame", disable=not progress, file=sys.stderr)
+    summary = {"steps": 0, "dt_min": sysm.dt, "dt_max": sysm.dt, "max_overlap_ratio": 0.0, "rollbacks": 0,
+               "n_builds": 0}
+    try:
+        if old is not None and len(old):
+            writer.append(old.reset_index(drop=True)[["frame", "t", "particle", "x", "y", "z", "vx", "vy", "vz", "radius"]])
+        else:
+            writer.append(_frame_df(0, sysm))
+        while frame < n_out:
+            t_next = (frame + 1) * dt_out
+            good = sysm.get_state()
+            good_dt = sysm.dt
+            tries = 0
+            while True:
+                nsteps = max(1, int(round((t_next - sysm.t) / sysm.dt)))
+                is_ck = ck_every > 0 and (frame + 1) % ck_every == 0
+                status = sysm.run(nsteps, rebuild_at_end=is_ck)
+                if status == OK:
+                    break
+                bad_step, bad_p = sysm.step, sysm.fail_particle
+                crit = critical_step(sysm.dchunk[1], sysm.dchunk[2])
+                suggest = min(sysm.dt / 4.0, inter.dt_safety * crit)
+                if fixed_dt or not inter.adaptive_dt or tries >= max_rollbacks:
+                    sysm.set_state(good)
+                    sysm.dt = good_dt
+                    np.savez(out_dir / "last_good_state.npz", **good)
+                    reason = STATUS_TEXT[status]
+                    writer.close(failed=f"blow-up at step {bad_step}: {reason}")
+                    raise UserError(
+                        f"DEM blow-up at step {bad_step} (t = {bad_step * good_dt:.6g} s): {reason}, particle {bad_p} "
+                        f"(dt = {good_dt:.3g} s); frames so far in {traj_path}, last good state in "
+                        f"{out_dir / 'last_good_state.npz'}",
+                        f"reduce time.dt to about {suggest:.2g} s or use time.dt = \"auto\"")
+                # adaptive: roll back to the start of the frame and retry with a smaller step
+                sysm.set_state(good)
+                sysm.dt = min(good_dt, suggest) if tries == 0 else sysm.dt * 0.5
+                tries += 1
+                summary["rollbacks"] += 1
+            frame += 1
+            summary["max_overlap_ratio"] = max(summary["max_overlap_ratio"], float(sysm.dchunk[0]))
+            writer.append(_frame_df(frame, sysm))
+            if is_ck:
+                save_checkpoint(ck_path, sysm.get_state(), {"frame": frame, "fingerprint": fp, "seed": scene.seed})
+            if not fixed_dt and inter.adaptive_dt:
+                crit = critical_step(sysm.dchunk[1], sysm.dchunk[2])
+                vmax = float(np.sqrt(np.max(np.sum(sysm.vel**2, axis=1)))) if sysm.n else 0.0
+                # shrink when the contacts present are stiffer than the a-priori
+                # estimate; never grow beyond it (new impacts come unannounced)
+                target = min(inter.dt_safety * crit, 0.05 * float(np.min(sysm.radius)) / max(vmax, 1e-300), dt0)
+                sysm.dt = float(min(target, 1.25 * sysm.dt))
+            summary["dt_min"] = min(summary["dt_min"], sysm.dt)
+            summary["dt_max"] = max(summary["dt_max"], sysm.dt)
+            bar.update(1)
+    except UserError:
+        raise
+    except BaseException as exc:
+        writer.close(failed=f"{type(exc).__name__}: {exc}")
+        raise
+    finally:
+        bar.close()
+    writer.close()
+    wall = time.perf_counter() - t_wall
+    summary.update({"steps": int(sysm.step), "wall_time_s": wall, "n_frames": n_out + 1, "dt_final": sysm.dt,
+                    "n_builds": int(sysm.n_builds), "resumed_from_step": resumed_from,
+                    "n_particles": int(sysm.n)})
+    with atomic_output(out_dir / "dem_summary.json", "w") as fh:
+        json.dump(summary, fh, indent=2, default=float)
+    return DEMResult(traj_path, scene_json, n_out + 1, wall, summary, sysm)

@@ -51,7 +51,7 @@ import math
 import numpy as np
 from numba import njit
 
-from sim.forces.nearfield import nearfield_magnitude
+from sim.forces.nearfield import fast_pow, nearfield_magnitude
 
 CONTACT_NONE = 0
 CONTACT_HOOKE = 1
@@ -126,12 +126,12 @@ def _law(model, cp, delta, nx, ny, nz, d, ri, rj, wall, meff,
             a2 = 0.0
         area = math.pi * a2
         p = cp[1]
-        ep = eps ** p
+        ep = fast_pow(eps, p)
         fc = cp[0] * ep * area
         fn = fc - cp[2] * vn * area
         bonded = cp[10] != 0.0 and eps >= cp[6]
         if bonded:
-            fn -= cp[3] * eps ** cp[5] * area
+            fn -= cp[3] * fast_pow(eps, cp[5]) * area
         if cp[11] != 0.0:
             kt_eff = cp[7] * area
             mu_s = cp[8]
@@ -141,7 +141,7 @@ def _law(model, cp, delta, nx, ny, nz, d, ri, rj, wall, meff,
         if bonded:
             kt_eff += cp[4] * area
         # stiffness for the time-step estimate: dF/d(delta)
-        kk = cp[0] * (p * eps ** (p - 1.0) * deps * area + ep * math.pi * dadd)
+        kk = cp[0] * (p * fast_pow(eps, p - 1.0) * deps * area + ep * math.pi * dadd)
         w2 = kk / meff
         dr = cp[2] * area / meff
     if w2 > diag[2]:

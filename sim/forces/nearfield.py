@@ -32,14 +32,30 @@ NF_YUKAWA = 2
 
 
 @njit(cache=True, inline="always")
+def fast_pow(x, p):
+    """x**p with the common small integer exponents done by multiplication."""
+    if p == 1.0:
+        return x
+    if p == 2.0:
+        return x * x
+    if p == 3.0:
+        return x * x * x
+    if p == -1.0:
+        return 1.0 / x
+    if p == -2.0:
+        return 1.0 / (x * x)
+    return x ** p
+
+
+@njit(cache=True, inline="always")
 def nearfield_magnitude(model, p, r, ri, rj, qi, qj):
     """Force on i along n (from j to i); positive = repulsive.  Zero beyond the cutoff."""
     if model == 1:
         if r >= p[4]:
             return 0.0
         qq = qi * qj
-        attraction = p[0] * qq * r ** (-p[2])
-        repulsion = p[1] * qq * r ** (-p[3])
+        attraction = p[0] * qq * fast_pow(r, -p[2])
+        repulsion = p[1] * qq * fast_pow(r, -p[3])
         # seed: F_i = (attraction - repulsion) n_ij, n_ij = -n
         return repulsion - attraction
     elif model == 2:
