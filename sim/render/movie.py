@@ -39,7 +39,7 @@ from ptrack.table import metadata, validate, write_table
 from .camera import Camera, expose
 from .optics import Optics, PSFStack, build_psf_stack, check_sampling, patch_size, sample_pixel_size, size_transfer
 
-__all__ = ["render_frames", "render_movie", "frame_interval_of"]
+__all__ = ["render_frames", "expected_frames", "render_movie", "frame_interval_of"]
 
 _CHUNK_BYTES = 48e6
 
@@ -315,6 +315,23 @@ def render_frames(table: pd.DataFrame, shape=(256, 256), optics: Optics | None =
     scene = _Scene(table, shape, optics, camera, focal_plane, motion_blur_substeps, radius)
     for _, _, img, _ in _iter_frames(scene, brightfield, seed):
         yield img
+
+
+def expected_frames(table: pd.DataFrame, shape=(256, 256), optics: Optics | None = None, camera: Camera | None = None,
+                    focal_plane: float = 0.0, brightfield: bool = False, motion_blur_substeps: int = 0,
+                    radius: float | None = None):
+    """Noise-free expected photons per pixel (float64 frames), same geometry as :func:`render_frames`.
+
+    Yields
+    ------
+    ndarray (H, W), float64
+        Expected photons reaching each pixel (background included), one per
+        sorted unique ``frame`` of the table; the camera turns them into ADU
+        with mean ``gain * QE * photons + offset``.
+    """
+    scene = _Scene(table, shape, optics, camera, focal_plane, motion_blur_substeps, radius)
+    for idx in scene.groups:
+        yield scene.expected(idx, brightfield)[0]
 
 
 def _tiff_metadata(pixel: float, frame_interval: float, info: dict) -> dict:

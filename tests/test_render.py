@@ -1,0 +1,377 @@
+"""Tests of the synthetic microscope (sim.render): optics against analytic results,
+camera statistics against the noise model, geometry against ground truth, files
+and metadata, determinism, CLI."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import tifffile
+from scipy.optimize import least_squares
+from scipy.special import j1
+
+from ptrack.cli import main
+from ptrack.table import make_table, read_table
+from sim.render import Camera, Optics, expected_frames, expose, psf_image, render_calibration, render_frames, render_movie
+from sim.render.optics import sample_pixel_size
+
+PX = 6.5e-6 / 63.0  # default sample pixel, m
+
+
+def one_particle(x_px, y_px, z=0.0, frames=1, dt=0.1, vx=0.0, vy=0.0, **cols):
+    f = np.arange(frames)
+    return make_table(f, f * dt, np.zeros(frames, int), (x_px + vx * f) * PX * np.ones(frames),
+                      (y_px + vy * f) * PX * np.ones(frames), np.full(frames, z), meta={"frame_interval": dt},
+                      **{k: np.full(frames, v) for k, v in cols.items()})
+
+
+# ---------------------------------------------------------------- optics
+
+def test_airy_first_dark_ring_at_0p61_lambda_over_na():
+    for na, wl in [(0.75, 519e-9), (0.5, 600e-9)]:
+        o = Optics(na=na, wavelength=wl)
+        os_ = 16
+        img = psf_image(o, PX, 0.0, size=48, oversample=os_, pixel_integrated=False)
+        c = 24 * os_
+        # azimuthal average of the point-sampled intensity around the source
+        yy, xx = np.indices(img.shape)
+        r = np.hypot(yy - c, xx - c) / os_ * PX
+        bins = np.arange(0, 1.5 * 0.61 * wl / na, PX / os_ / 2)
+        idx = np.digitize(r.ravel(), bins)
+        prof = np.bincount(idx, img.ravel(), minlength=len(bins) + 1)[1:len(bins)] / np.maximum(
+            np.bincount(idx, minlength=len(bins) + 1)[1:len(bins)], 1)
+        rmid = 0.5 * (bins[1:] + bins[:-1])
+        k = np.argmin(prof[len(prof) // 3:]) + len(prof) // 3
+        expected = 0.61 * wl / na
+        assert abs(rmid[k] - expected) / expected < 0.02, (rmid[k], expected)
+        # and the whole profile is the Airy pattern [2 J1(v)/v]^2
+        prof_ax = img[c, c:c + 6 * os_] / img[c, c]
+        v = 2 * np.pi * na * (np.arange(6 * os_) / os_ * PX) / wl
+        airy = np.ones_like(v)
+        airy[1:] = (2 * j1(v[1:]) / v[1:]) ** 2
+        assert np.max(np.abs(prof_ax - airy)) < 2e-3
+
+
+def test_flux_conserved_and_peak_where_truth_says():
+    cam = Camera(photons=12345.0, background=0.0)
+    for z, radius in [(0.0, 0.0), (2e-6, 250e-9), (-1.5e-6, 0.0)]:
+        t = one_particle(70.3, 67.8, z=z)  # the patch (PSF tails included) lies inside the frame
+        img = next(expected_frames(t, (140, 140), Optics(astigmatism=1e-7), cam, radius=radius))
+        assert img.sum() == pytest.approx(12345.0, rel=1e-9)
+        assert img.min() > -1e-6 * img.max()  # an intensity, no ringing below zero worth the name
+    # in focus the brightest pixel is the one containing the particle
+    img = next(expected_frames(one_particle(40.3, 37.8), (80, 80), Optics(), cam))
+    iy, ix = np.unravel_index(np.argmax(img), img.shape)
+    assert (iy, ix) == (38, 40)
+
+
+def _moments(img):
+    yy, xx = np.indices(img.shape)
+    w = img / img.sum()
+    mx, my = (w * xx).sum(), (w * yy).sum()
+    return mx, my, np.sqrt((w * (xx - mx) ** 2).sum()), np.sqrt((w * (yy - my) ** 2).sum())
+
+
+def test_astigmatism_swaps_x_and_y_widths_across_focus():
+    o = Optics(astigmatism=1.2e-7)
+    cam = Camera(photons=1e4, background=0.0)
+    dz = 1.0e-6
+    above = next(expected_frames(one_particle(80, 80, z=dz), (160, 160), o, cam))
+    below = next(expected_frames(one_particle(80, 80, z=-dz), (160, 160), o, cam))
+    _, _, sxa, sya = _moments(above)
+    _, _, sxb, syb = _moments(below)
+    # elongated along different axes on the two sides of focus
+    assert max(sxa, sya) > 1.3 * min(sxa, sya) and (sxa - sya) * (sxb - syb) < 0
+    assert sxa == pytest.approx(syb, rel=0.02) and sya == pytest.approx(sxb, rel=0.02)  # mirror images
+    # without astigmatism the defocused image is round and the same on both sides
+    o0 = Optics()
+    a0 = next(expected_frames(one_particle(80, 80, z=dz), (160, 160), o0, cam))
+    _, _, sx0, sy0 = _moments(a0)
+    assert sx0 == pytest.approx(sy0, rel=1e-6)
+
+
+def test_defocus_widens_the_image_by_the_geometric_cone():
+    o = Optics()
+    cam = Camera(photons=1e4, background=0.0)
+    img = next(expected_frames(one_particle(64, 64, z=6e-6), (128, 128), o, cam))
+    # the defocused image is a disk of radius ~ |dz| tan(theta) (plus diffraction): 2nd moment of a
+    # uniform disk of radius a is a/2 per axis
+    a = 6e-6 * o.half_angle_tan / PX
+    _, _, sx, sy = _moments(img)
+    assert sx == pytest.approx(a / 2, rel=0.15) and sy == pytest.approx(sx, rel=1e-6)
+
+
+def test_particle_size_blurs_and_keeps_flux():
+    cam = Camera(photons=1e4, background=0.0)
+    small = next(expected_frames(one_particle(60, 60), (120, 120), None, cam, radius=0.0))
+    big = next(expected_frames(one_particle(60, 60), (120, 120), None, cam, radius=1.0e-6))
+    assert big.sum() == pytest.approx(small.sum(), rel=1e-9)
+    # independent check in real space: the point image convolved with the projected ball
+    # (density ~ sqrt(R^2 - r^2)), the kernel integrated over sub-pixel points
+    from scipy.signal import fftconvolve
+
+    R = 1.0e-6 / PX
+    sub = 9
+    o = (np.arange(sub) + 0.5) / sub - 0.5
+    m = int(np.ceil(R)) + 1
+    yy, xx = np.mgrid[-m:m + 1, -m:m + 1]
+    r2 = (xx[..., None, None] + o[None, None, None, :]) ** 2 + (yy[..., None, None] + o[None, None, :, None]) ** 2
+    K = np.sqrt(np.clip(R * R - r2, 0, None)).mean(axis=(-1, -2))
+    K /= K.sum()
+    ref = fftconvolve(small, K, mode="same")
+    win = (slice(40, 81), slice(40, 81))
+    assert np.max(np.abs(big[win] - ref[win])) < 0.01 * ref[win].max()
+    assert big.max() < 0.5 * small.max()
+
+
+# ---------------------------------------------------------------- camera
+
+@pytest.mark.parametrize("photons", [30.0, 3000.0])
+def test_camera_mean_and_variance_match_model(photons):
+    cam = Camera(quantum_efficiency=0.7, read_noise=1.6, gain=2.2, offset=100.0)
+    rng = np.random.default_rng(7)
+    img = expose(np.full((400, 400), photons), cam, rng).astype(float)
+    e = cam.quantum_efficiency * photons
+    mean = cam.gain * e + cam.offset
+    var = cam.gain ** 2 * (e + cam.read_noise ** 2) + 1.0 / 12.0  # + rounding to whole ADU
+    n = img.size
+    assert abs(img.mean() - mean) < 5 * np.sqrt(var / n)
+    assert abs(img.var() - var) < 5 * var * np.sqrt(2.0 / n)
+
+
+def test_camera_clips_to_bit_depth():
+    cam = Camera(bit_depth=12)
+    img = expose(np.full((10, 10), 1e7), cam, np.random.default_rng(0))
+    assert img.dtype == np.uint16 and img.max() == 4095
+
+
+def test_frames_mean_matches_expected_image():
+    t = one_particle(20.2, 18.6, z=0.3e-6, frames=200)
+    cam = Camera(photons=2e4, background=10.0)
+    exp_img = next(expected_frames(t.iloc[:1], (40, 40), None, cam))
+    frames = np.array(list(render_frames(t, (40, 40), None, cam, seed=3)), dtype=float)
+    mean = frames.mean(axis=0)
+    pred = cam.expected_adu(exp_img)
+    sd = np.sqrt(cam.gain ** 2 * (cam.quantum_efficiency * exp_img + cam.read_noise ** 2) / len(frames))
+    assert np.max(np.abs(mean - pred) / sd) < 5.0
+
+
+# ---------------------------------------------------------------- geometry / localisation
+
+def _airy_model(p, xx, yy, na=0.75, wl=519e-9, sub=8):
+    """Pixel-integrated Airy disk (midpoint rule, sub x sub points per pixel) + constant background."""
+    A, x0, y0, b = p
+    o = (np.arange(sub) + 0.5) / sub - 0.5
+    dx = xx[..., None, None] + o[None, None, None, :] - x0
+    dy = yy[..., None, None] + o[None, None, :, None] - y0
+    v = 2 * np.pi * na * np.hypot(dx, dy) * PX / wl
+    v = np.maximum(v, 1e-9)
+    return A * ((2 * j1(v) / v) ** 2).mean(axis=(-1, -2)) + b
+
+
+def test_independent_fit_finds_ground_truth_within_0p01_px(tmp_path):
+    rng = np.random.default_rng(11)
+    cam = Camera(photons=2e6, background=20.0)
+    n = 6
+    xs, ys = 12.0 + rng.uniform(0, 1, n), 14.0 + rng.uniform(0, 1, n)
+    f = np.arange(n)
+    t = make_table(f, f * 0.1, f, xs * PX, ys * PX, np.zeros(n), meta={"frame_interval": 0.1})
+    paths = render_movie(t, tmp_path, (28, 28), None, cam, seed=5, progress=False)
+    truth = read_table(paths["truth"])
+    movie = tifffile.imread(paths["movie"]).astype(float)
+    errs = []
+    for k in range(n):
+        row = truth[truth["frame"] == k].iloc[0]
+        cx, cy = int(round(row["x_px"])), int(round(row["y_px"]))
+        yy, xx = np.mgrid[cy - 8:cy + 9, cx - 8:cx + 9]
+        img = movie[k][yy, xx]
+        p0 = [img.max() - img.min(), cx + 0.2, cy - 0.2, img.min()]
+        w = 1.0 / np.sqrt(np.maximum(img - cam.offset, 1.0) * cam.gain + 1.0)
+        fit = least_squares(lambda p: ((_airy_model(p, xx, yy) - img) * w).ravel(), p0, x_scale=[1e4, 0.1, 0.1, 10])
+        errs.append((fit.x[1] - row["x_px"], fit.x[2] - row["y_px"]))
+        assert row["x_px"] == pytest.approx(xs[k]) and row["y_px"] == pytest.approx(ys[k])
+    errs = np.array(errs)
+    assert np.max(np.abs(errs)) < 0.01, errs
+
+
+def test_motion_blur_is_centred_on_truth_and_elongated():
+    cam = Camera(photons=1e5, background=0.0)
+    t = one_particle(72.0, 80.0, frames=3, vx=8.0)  # 8 px per frame along x, exposure = frame interval
+    still = list(expected_frames(t, (160, 160), None, cam))[1]
+    blur = list(expected_frames(t, (160, 160), None, cam, motion_blur_substeps=16))[1]
+    mx, my, sx, sy = _moments(blur)
+    assert mx == pytest.approx(80.0, abs=0.02) and my == pytest.approx(80.0, abs=0.02)
+    assert blur.sum() == pytest.approx(1e5, rel=1e-9)
+    # the blurred frame is the mean of still images at the 16 sub-positions spread over the exposure
+    xs = 80.0 + 8.0 * ((np.arange(16) + 0.5) / 16 - 0.5)
+    f = np.arange(16)
+    subs = make_table(f, f * 0.1, f, xs * PX, np.full(16, 80.0 * PX), np.zeros(16), meta={"frame_interval": 0.1})
+    ref = np.mean(list(expected_frames(subs, (160, 160), None, cam)), axis=0)
+    win = (slice(52, 109), slice(52, 109))  # inside both patches (their far tails wrap differently)
+    np.testing.assert_allclose(blur[win], ref[win], atol=3e-4 * blur.max())
+    assert blur.max() < 0.6 * still.max()
+
+
+def test_brightfield_particles_are_dark_on_bright_background():
+    cam = Camera(photons=2e4, background=1000.0)
+    img = next(render_frames(one_particle(20.0, 22.0), (40, 40), None, cam, brightfield=True, seed=0)).astype(float)
+    assert np.median(img) > cam.expected_adu(900)
+    iy, ix = np.unravel_index(np.argmin(img), img.shape)
+    assert abs(ix - 20) <= 1 and abs(iy - 22) <= 1
+
+
+def test_nan_z_renders_in_focus_and_focal_plane_shifts_defocus():
+    cam = Camera(photons=1e4, background=0.0)
+    a = next(expected_frames(one_particle(16, 16, z=np.nan), (32, 32), None, cam))
+    b = next(expected_frames(one_particle(16, 16, z=0.0), (32, 32), None, cam))
+    c = next(expected_frames(one_particle(16, 16, z=1e-6), (32, 32), None, cam, focal_plane=1e-6))
+    np.testing.assert_allclose(a, b, atol=1e-9)
+    np.testing.assert_allclose(c, b, atol=1e-9)
+
+
+# ---------------------------------------------------------------- files, metadata, determinism
+
+def _small_table(n_frames=5, n=4, seed=0):
+    rng = np.random.default_rng(seed)
+    f = np.repeat(np.arange(n_frames), n)
+    p = np.tile(np.arange(n), n_frames)
+    x = rng.uniform(5, 40, n * n_frames) * PX
+    y = rng.uniform(5, 30, n * n_frames) * PX
+    z = rng.uniform(-1e-6, 1e-6, n * n_frames)
+    return make_table(f, f * 0.25, p, x, y, z, meta={"frame_interval": 0.25})
+
+
+def test_movie_metadata_pixel_size_and_frame_interval(tmp_path):
+    paths = render_movie(_small_table(), tmp_path / "m", (36, 48), seed=1, progress=False, compression="zlib")
+    with tifffile.TiffFile(paths["movie"]) as tf:
+        assert len(tf.pages) == 5 and tf.pages[0].shape == (36, 48) and tf.pages[0].dtype == np.uint16
+        ij = tf.imagej_metadata
+        assert ij["finterval"] == pytest.approx(0.25)
+        assert ij["unit"] == "um"
+        num, den = tf.pages[0].tags["XResolution"].value
+        assert den / num * 1e-6 == pytest.approx(PX, rel=1e-6)  # um per pixel -> m
+        info = json.loads(ij["Info"])
+        assert info["pixel_size"] == pytest.approx(PX, rel=1e-12) and info["frame_interval"] == 0.25
+    truth = read_table(paths["truth"])
+    assert truth.attrs["ptrack"]["pixel_size"] == pytest.approx(PX)
+    assert {"x_px", "y_px", "photons", "signal", "defocus", "in_frame"} <= set(truth.columns)
+    np.testing.assert_allclose(truth["x_px"] * PX, truth["x"], rtol=1e-12)
+    params = json.loads(paths["params"].read_text())
+    assert params["optics"]["na"] == 0.75 and params["n_frames"] == 5
+
+
+def test_same_seed_byte_identical_other_seed_differs(tmp_path):
+    t = _small_table()
+    a = render_movie(t, tmp_path / "a", (36, 48), seed=42, progress=False)
+    b = render_movie(t, tmp_path / "b", (36, 48), seed=42, progress=False)
+    c = render_movie(t, tmp_path / "c", (36, 48), seed=43, progress=False)
+    assert a["movie"].read_bytes() == b["movie"].read_bytes()
+    assert a["movie"].read_bytes() != c["movie"].read_bytes()
+    fa = list(render_frames(t, (36, 48), seed=42))
+    np.testing.assert_array_equal(np.array(fa), tifffile.imread(a["movie"]))
+
+
+def test_movie_pages_cover_frame_gaps(tmp_path):
+    t = _small_table(n_frames=6)
+    t = t[t["frame"] != 3].copy()
+    t.attrs["ptrack"] = {"frame_interval": 0.25}
+    paths = render_movie(t, tmp_path, (36, 48), seed=0, progress=False)
+    assert len(tifffile.TiffFile(paths["movie"]).pages) == 6
+    assert len(list(render_frames(t, (36, 48)))) == 5
+
+
+def test_calibration_stack_files_and_content(tmp_path):
+    o = Optics(astigmatism=1e-7)
+    cam = Camera(photons=5e4, background=5.0)
+    paths = render_calibration(tmp_path, -2e-6, 2e-6, 0.5e-6, shape=(48, 48), optics=o, camera=cam, seed=0,
+                               progress=False)
+    z = pd.read_csv(paths["z"])
+    assert list(z.columns) == ["page", "z"] and len(z) == 9
+    np.testing.assert_allclose(z["z"], np.linspace(-2e-6, 2e-6, 9), atol=1e-15)
+    stack = tifffile.imread(paths["stack"]).astype(float)
+    assert stack.shape == (9, 48, 48)
+    focus = stack[4] - cam.offset
+    iy, ix = np.unravel_index(np.argmax(focus), focus.shape)
+    assert (iy, ix) == (23, 23)
+    # the pages above and below focus are elongated along different axes
+    hi, lo = np.clip(stack[6] - cam.offset - 5, 0, None), np.clip(stack[2] - cam.offset - 5, 0, None)
+    _, _, sxh, syh = _moments(hi)
+    _, _, sxl, syl = _moments(lo)
+    assert (sxh - syh) * (sxl - syl) < 0
+    with tifffile.TiffFile(paths["stack"]) as tf:
+        assert tf.imagej_metadata["spacing"] == pytest.approx(0.5)
+
+
+def test_bad_input_is_a_user_error(tmp_path):
+    from ptrack.errors import UserError
+
+    with pytest.raises(UserError):
+        Optics(na=1.2)
+    with pytest.raises(UserError):
+        Camera(quantum_efficiency=1.5)
+    with pytest.raises(UserError):
+        list(render_frames(_small_table(), (0, 10)))
+    with pytest.raises(UserError):
+        render_calibration(tmp_path, 1e-6, -1e-6, 1e-7, progress=False)
+    with pytest.raises(UserError):  # pixel coarser than Nyquist
+        list(render_frames(_small_table(), (10, 10), Optics(magnification=20)))
+
+
+# ---------------------------------------------------------------- CLI
+
+def test_cli_render_and_calibration(tmp_path, capsys):
+    t = _small_table()
+    src = tmp_path / "traj.csv"
+    t.to_csv(src, index=False)
+    out = tmp_path / "movie"
+    assert main(["render", str(src), "--out", str(out), "--shape", "36", "48", "--seed", "3",
+                 "--focal-plane", "-2e-7", "--astigmatism", "1e-7", "--photons", "8000"]) == 0
+    for name in ("movie.tif", "truth.parquet", "params.json", "preview.png"):
+        assert (out / name).is_file()
+    p = json.loads((out / "params.json").read_text())
+    assert p["focal_plane"] == -2e-7 and p["camera"]["photons"] == 8000 and p["optics"]["astigmatism"] == 1e-7
+    out2 = tmp_path / "movie2"
+    assert main(["render", str(src), "--out", str(out2), "--shape", "36", "48", "--seed", "3",
+                 "--focal-plane", "-2e-7", "--astigmatism", "1e-7", "--photons", "8000"]) == 0
+    assert (out / "movie.tif").read_bytes() == (out2 / "movie.tif").read_bytes()
+    cal = tmp_path / "cal"
+    assert main(["render-calibration", "--out", str(cal), "--z-range", "-1e-6", "1e-6", "--z-step", "5e-7",
+                 "--shape", "32", "32"]) == 0
+    assert len(pd.read_csv(cal / "calib_z.csv")) == 5 and (cal / "calib_montage.png").is_file()
+    capsys.readouterr()
+    assert main(["render", str(tmp_path / "missing.parquet"), "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error:")
+    assert not (tmp_path / "x").exists()
+    assert main(["render", str(src), "--out", str(tmp_path / "y"), "--na", "1.5"]) == 2
+
+
+# ---------------------------------------------------------------- shipped data
+
+DATA = Path(__file__).resolve().parents[1] / "data" / "synthetic"
+
+
+def test_shipped_datasets_are_consistent():
+    from sim.render.datasets import stokes_einstein
+
+    for name in ("diffusion2d", "diffusion3d", "epd_brightfield"):
+        d = DATA / name
+        params = json.loads((d / "params.json").read_text())
+        truth = read_table(d / "truth.parquet")
+        with tifffile.TiffFile(d / "movie.tif") as tf:
+            assert len(tf.pages) == params["n_frames"] == truth["frame"].max() + 1
+            assert tf.pages[0].shape == tuple(params["shape"])
+        assert "Regenerate with:" in (d / "README.txt").read_text()
+        assert truth.attrs["ptrack"]["pixel_size"] == pytest.approx(PX)
+    p2 = json.loads((DATA / "diffusion2d" / "params.json").read_text())
+    assert p2["D_true"] == pytest.approx(stokes_einstein(250e-9), rel=1e-12)
+    assert p2["D_truth_tracks"] == pytest.approx(p2["D_true"], rel=0.04)
+    z = pd.read_csv(DATA / "diffusion3d" / "calib_z.csv")
+    truth3 = read_table(DATA / "diffusion3d" / "truth.parquet")
+    assert z["z"].min() <= truth3["z"].min() and truth3["z"].max() <= z["z"].max()
+    epd = read_table(DATA / "epd_brightfield" / "truth.parquet")
+    first, last = epd[epd["frame"] == 0], epd[epd["frame"] == epd["frame"].max()]
+    assert last["z"].mean() < first["z"].mean()
