@@ -37,8 +37,8 @@ class Calibration:
 
     Attributes
     ----------
-    templates : ndarray, shape (K, T, T), float32
-        Background-subtracted calibration images, T odd.
+    templates : list of K ndarrays (T_k, T_k), float32
+        Background-subtracted calibration images, T_k odd, sized per page.
     z : ndarray, shape (K,)
         Height of each template (m), strictly increasing.
     centers : ndarray, shape (K, 2)
@@ -57,7 +57,8 @@ class Calibration:
 
     @property
     def size(self) -> int:
-        return int(self.templates.shape[1])
+        """Largest template side (px)."""
+        return int(max(t.shape[0] for t in self.templates))
 
     @property
     def depth(self) -> float:
@@ -114,7 +115,7 @@ def _page_centre(img, noise):
     cy = float((w.sum(1) * r).sum() / s)
     cx = float((w.sum(0) * c).sum() / s)
     # radius holding 95 % of the excess intensity
-    pos = np.clip(img, 0, None)
+    pos = np.clip(img - 2.0 * noise, 0, None)   # noise-free support: positive noise would fill the page
     rr, cc = np.indices(img.shape)
     d = np.hypot(rr - cy, cc - cx).ravel()
     order = np.argsort(d)
@@ -167,27 +168,26 @@ def build_calibration(stack, z, pixel_size=None, template_size: int | None = Non
     if any(f is None for f in found):
         bad = [int(k) for k, f in enumerate(found) if f is None]
         raise UserError(f"no particle visible in calibration page(s) {bad[:5]}", "crop the stack to the calibrated range")
-    if template_size is None:
-        r = max(f[2] for f in found)
-        template_size = int(2 * math.ceil(1.15 * r) + 1)
-    T = int(template_size) | 1
+    # each page gets its own square template, sized to its particle image (1.2 x the radius holding
+    # 95 % of the light, at least 7 px): a small in-focus spot is not drowned in the noise of a
+    # window sized for the most defocused page, which would lower its Cm.
     max_t = min(H, W) if min(H, W) % 2 else min(H, W) - 1
-    T = min(T, max_t)
-    h = T // 2
-    templates = np.zeros((K, T, T), np.float32)
-    centers = np.zeros((K, 2))
-    for k, (p, (cy, cx, _)) in enumerate(zip(pages, found)):
+    templates, centers = [], np.zeros((K, 2))
+    for k, (p, (cy, cx, r95)) in enumerate(zip(pages, found)):
+        T = int(template_size) | 1 if template_size is not None else int(2 * math.ceil(max(1.2 * r95, 3.0)) + 1)
+        T = min(T, max_t)
+        h = T // 2
         r0 = int(round(cy)) - h
         c0 = int(round(cx)) - h
         padded = np.zeros((T, T), np.float32)
         rs, cs = max(r0, 0), max(c0, 0)
         re, ce = min(r0 + T, H), min(c0 + T, W)
         padded[rs - r0:re - r0, cs - c0:ce - c0] = p[rs:re, cs:ce]
-        templates[k] = padded
+        if padded.std() == 0:
+            raise UserError(f"calibration page {k} is constant", "check the calibration stack")
+        templates.append(padded)
         centers[k] = (cy - r0, cx - c0)
-    flat = templates.reshape(K, -1)
-    if np.any(flat.std(1) == 0):
-        raise UserError("a calibration template is constant", "check the calibration stack")
+    T = max(t.shape[0] for t in templates)
     return Calibration(templates, z, centers, pixel_size, source, {"template_size": T})
 
 
@@ -288,8 +288,53 @@ def _parabola_vertex(x0, x1, x2, y0, y1, y2):
     return x1 + t, y1 + b * t + a * t * t
 
 
+def _subpixel_peaks(maps):
+    """Height of each correlation map's maximum, refined by a parabola through it and its neighbours per axis.
+
+    A particle sits between pixels while a template is centred on one: the
+    correlation at the nearest integer shift is lower than at the true
+    shift, more so for sharp (in-focus) templates than for blurred ones, which
+    would bias z towards defocus. The sub-pixel peak height removes that bias.
+    """
+    K, ny, nx = maps.shape
+    flat = maps.reshape(K, -1)
+    idx = flat.argmax(1)
+    i, j = np.divmod(idx, nx)
+    kk = np.arange(K)
+    c = flat[kk, idx]
+    out = c.copy()
+    for axis_n, (a, b) in ((ny, (i, j)), (nx, (j, i))):
+        inner = (a > 0) & (a < axis_n - 1)
+        am, ap = np.clip(a - 1, 0, axis_n - 1), np.clip(a + 1, 0, axis_n - 1)
+        if axis_n == ny:
+            y0, y2 = maps[kk, am, b], maps[kk, ap, b]
+        else:
+            y0, y2 = maps[kk, b, am], maps[kk, b, ap]
+        curv = y0 + y2 - 2 * c
+        ok = inner & (curv < 0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            gain = np.where(ok, -((y2 - y0) ** 2) / (8 * curv), 0.0)
+        out += gain
+    return out
+
+
+def _quadratic_peak(z, c, k, n_points):
+    """z of the maximum of a least-squares parabola through Cm(z) at the ``n_points`` pages around page k."""
+    K = len(z)
+    w = max(1, int(n_points) // 2)
+    lo, hi = max(0, k - w), min(K, k + w + 1)
+    if hi - lo < 3:
+        return float(z[k])
+    zz = z[lo:hi] - z[k]
+    a, b, _ = np.polyfit(zz, c[lo:hi], 2)
+    if a >= 0:
+        return float(z[k])
+    t = -b / (2 * a)
+    return float(z[k] + np.clip(t, zz[0], zz[-1]))
+
+
 def match_templates(img, rows, cols, calib: Calibration, margin: int = 4, cm_min: float = 0.5,
-                    smooth: float = 1.0):
+                    smooth: float = 1.0, z_points: int = 5):
     """z, refined x, y and Cm of particles near (rows, cols) by normalised cross-correlation.
 
     Parameters
@@ -303,6 +348,9 @@ def match_templates(img, rows, cols, calib: Calibration, margin: int = 4, cm_min
         Search +- margin px around each centre.
     cm_min : float
         Drop matches with a lower correlation.
+    z_points : int
+        Pages around the best one fitted by a parabola Cm(z) (3 = the
+        classic three-point vertex; 5 averages out template noise).
     smooth : float
         Gaussian smoothing (px) of frame and templates before correlating
         (0: none). Defocused images spread their photons over many pixels;
@@ -315,33 +363,32 @@ def match_templates(img, rows, cols, calib: Calibration, margin: int = 4, cm_min
     """
     import cv2
 
-    T = calib.size
-    h = T // 2
+    Tmax = calib.size
     m = int(margin)
-    pad = h + m + 1
+    pad = Tmax // 2 + m + 1
     img = np.ascontiguousarray(img, np.float32)
-    tmpl = calib.templates
+    tmpl = list(calib.templates)
     if smooth and smooth > 0:
         img = cv2.GaussianBlur(img, (0, 0), sigmaX=float(smooth))
-        tmpl = np.stack([cv2.GaussianBlur(t, (0, 0), sigmaX=float(smooth)) for t in tmpl])
+        tmpl = [cv2.GaussianBlur(t, (0, 0), sigmaX=float(smooth)) for t in tmpl]
     padded = cv2.copyMakeBorder(img, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0.0)
     K = len(calib.z)
+    halves = [t.shape[0] // 2 for t in tmpl]
     out = {k: [] for k in ("x_px", "y_px", "z", "cm", "page", "mass")}
     for r, c in zip(np.asarray(rows, float), np.asarray(cols, float)):
         ri, ci = int(round(r)) + pad, int(round(c)) + pad
-        win = padded[ri - h - m: ri + h + m + 1, ci - h - m: ci + h + m + 1]
-        if win.std() == 0:
-            continue
-        maps = np.stack([cv2.matchTemplate(win, tmpl[k], cv2.TM_CCOEFF_NORMED) for k in range(K)])
-        peak = maps.reshape(K, -1).max(1)
+        maps = []
+        for k in range(K):
+            h = halves[k]
+            win = padded[ri - h - m: ri + h + m + 1, ci - h - m: ci + h + m + 1]
+            maps.append(cv2.matchTemplate(win, tmpl[k], cv2.TM_CCOEFF_NORMED))
+        maps = np.nan_to_num(np.stack(maps), nan=-1.0)   # all (2m+1, 2m+1)
+        peak = _subpixel_peaks(maps)
         k = int(np.argmax(peak))
         cm = float(peak[k])
-        if not np.isfinite(cm) or cm < cm_min:
+        if cm < cm_min:
             continue
-        if 0 < k < K - 1:
-            z, cmz = _parabola_vertex(calib.z[k - 1], calib.z[k], calib.z[k + 1], peak[k - 1], peak[k], peak[k + 1])
-        else:
-            z, cmz = calib.z[k], cm
+        z = _quadratic_peak(calib.z, peak, k, z_points)
         mp = maps[k]
         i, j = np.unravel_index(int(np.argmax(mp)), mp.shape)
         di = dj = 0.0
@@ -350,9 +397,11 @@ def match_templates(img, rows, cols, calib: Calibration, margin: int = 4, cm_min
         if 0 < j < mp.shape[1] - 1:
             dj = _parabola_vertex(-1.0, 0.0, 1.0, mp[i, j - 1], mp[i, j], mp[i, j + 1])[0]
         # template top-left at window (i, j) -> frame coordinates
+        h = halves[k]
         y = (ri - pad) - h - m + i + di + calib.centers[k, 0]
         x = (ci - pad) - h - m + j + dj + calib.centers[k, 1]
-        sub = win[i:i + T, j:j + T]
+        T = 2 * h + 1
+        sub = padded[ri - h - m + i: ri - h - m + i + T, ci - h - m + j: ci - h - m + j + T]
         out["x_px"].append(x)
         out["y_px"].append(y)
         out["z"].append(z)
@@ -365,7 +414,7 @@ def match_templates(img, rows, cols, calib: Calibration, margin: int = 4, cm_min
         df = df.sort_values("cm", ascending=False).reset_index(drop=True)
         from scipy.spatial import cKDTree
 
-        pairs = cKDTree(df[["x_px", "y_px"]].to_numpy()).query_pairs(max(2.0, h / 2))
+        pairs = cKDTree(df[["x_px", "y_px"]].to_numpy()).query_pairs(2.0)
         drop = {max(a, b) for a, b in pairs}
         if drop:
             df = df.drop(index=sorted(drop)).reset_index(drop=True)
