@@ -287,7 +287,7 @@ def _open_tiff(path: Path, allow_float: bool, series_index: int = 0):
                             "give an uncorrupted TIFF movie (multi-page, ImageJ or OME-TIFF)") from None
         try:
             if not tif.series:
-                raise UserError(f"{path} contains no images", "give a TIFF movie")
+                raise UserError(f"{path} contains no readable image (corrupt, or not a movie)", "give an uncorrupted TIFF movie")
             series = tif.series[series_index]
             page = series.pages[0] if series.pages else tif.pages[0]
             shape, axes = tuple(series.shape), series.axes

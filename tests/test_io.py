@@ -1,0 +1,148 @@
+"""Movie reading: formats, calibration metadata with units, bounded memory, clear errors."""
+import subprocess
+import sys
+import tracemalloc
+
+import numpy as np
+import pytest
+import tifffile
+
+from ptrack.errors import UserError
+from ptrack.io import check_not_blank, open_movie, parse_length, parse_time
+
+
+@pytest.fixture
+def stack():
+    rng = np.random.default_rng(0)
+    return (rng.random((6, 24, 30)) * 4000).astype(np.uint16)
+
+
+def test_units():
+    assert parse_length(0.103, "micron") == pytest.approx(1.03e-7)
+    assert parse_length(103, "nm") == pytest.approx(1.03e-7)
+    assert parse_length(1.03e-4, "mm") == pytest.approx(1.03e-7)
+    assert parse_length(0.103, "\\u00B5m") == pytest.approx(1.03e-7)
+    assert parse_length(1, "pixel") is None
+    assert parse_time(50, "ms") == pytest.approx(0.05)
+    assert parse_time(0.1, "sec") == pytest.approx(0.1)
+    assert parse_time(1, "parsec") is None
+
+
+def test_imagej_metadata_and_memmap(tmp_path, stack):
+    p = tmp_path / "ij.tif"
+    tifffile.imwrite(p, stack, imagej=True, resolution=(1 / 0.103, 1 / 0.103),
+                     metadata={"unit": "um", "finterval": 0.1, "axes": "TYX"})
+    with open_movie(p) as m:
+        assert (len(m), m.shape, m.dtype) == (6, (24, 30), np.uint16)
+        assert m.pixel_size == pytest.approx(1.03e-7)
+        assert m.frame_interval == pytest.approx(0.1)
+        assert m.memmapped
+        np.testing.assert_array_equal(m[4], stack[4])
+        np.testing.assert_array_equal(m[-1], stack[-1])
+        with pytest.raises(IndexError):
+            m[6]
+    with open_movie(p, pixel_size=2e-7, frame_interval=0.05) as m:   # flags override metadata
+        assert (m.pixel_size, m.frame_interval) == (2e-7, 0.05)
+
+
+def test_ome_units_and_compressed_pages(tmp_path, stack):
+    p = tmp_path / "m.ome.tif"
+    tifffile.imwrite(p, stack, compression="zlib", metadata={
+        "axes": "TYX", "PhysicalSizeX": 103, "PhysicalSizeXUnit": "nm", "TimeIncrement": 50, "TimeIncrementUnit": "ms"})
+    with open_movie(p) as m:
+        assert not m.memmapped
+        assert m.pixel_size == pytest.approx(1.03e-7)
+        assert m.frame_interval == pytest.approx(0.05)
+        np.testing.assert_array_equal(np.stack(list(m)), stack)
+
+
+def test_image_sequences(tmp_path, stack):
+    import cv2
+
+    d = tmp_path / "seq"
+    d.mkdir()
+    for i, f in enumerate(stack):       # natural order: frame_2 before frame_10
+        cv2.imwrite(str(d / f"frame_{i * 5}.png"), f)
+    with open_movie(d) as m:
+        assert len(m) == 6 and m.dtype == np.uint16 and m.pixel_size is None
+        np.testing.assert_array_equal(m[2], stack[2])
+        with pytest.raises(UserError, match="--pixel-size"):
+            m.require_calibration()
+    for i, f in enumerate(stack):
+        tifffile.imwrite(tmp_path / f"t{i:02d}.tif", f)
+    with open_movie(str(tmp_path / "t*.tif"), frame_interval=0.1) as m:
+        assert len(m) == 6
+        np.testing.assert_array_equal(m[5], stack[5])
+        m.pixel_size = 1e-7
+        m.require_calibration()
+
+
+def test_bounded_memory(tmp_path):
+    """Iterating a 40 MB movie must not load it: memory-mapped, one frame at a time."""
+    p = tmp_path / "big.tif"
+    frames = np.zeros((40, 512, 1024), np.uint16)
+    frames[:, ::7, ::5] = 1000
+    tifffile.imwrite(p, frames)
+    del frames
+    tracemalloc.start()
+    with open_movie(p) as m:
+        total = 0
+        for f in m:
+            total += int(f[0, 0]) + int(f.sum() > 0)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert total == 40 * 1001
+    assert peak < 8e6
+
+
+@pytest.mark.parametrize("kind", ["truncated_contiguous", "truncated_compressed", "junk", "float", "rgb", "channels"])
+def test_bad_files_are_clear_errors(tmp_path, stack, kind):
+    p = tmp_path / f"{kind}.tif"
+    if kind.startswith("truncated"):
+        full = tmp_path / "full.tif"
+        tifffile.imwrite(full, stack, compression="zlib" if "compressed" in kind else None)
+        data = full.read_bytes()
+        p.write_bytes(data[: len(data) * 2 // 3])
+        match = "truncated|corrupt"
+    elif kind == "junk":
+        p.write_bytes(b"II*\x00" + b"\xff" * 50)
+        match = "corrupt|cannot read"
+    elif kind == "float":
+        tifffile.imwrite(p, stack.astype(np.float32))
+        match = "floating-point"
+    elif kind == "rgb":
+        tifffile.imwrite(p, np.zeros((20, 20, 3), np.uint8), photometric="rgb")
+        match = "RGB"
+    else:
+        tifffile.imwrite(p, np.zeros((3, 2, 20, 20), np.uint16), imagej=True, metadata={"axes": "TCYX"})
+        match = "channels"
+    with pytest.raises(UserError, match=match):
+        with open_movie(p) as m:
+            for _ in m:
+                pass
+
+
+def test_blank_movie(tmp_path):
+    p = tmp_path / "dark.tif"
+    tifffile.imwrite(p, np.full((5, 16, 16), 100, np.uint16))
+    with open_movie(p) as m, pytest.raises(UserError, match="blank"):
+        check_not_blank(m)
+
+
+def test_cli_truncated_and_dark_movies_exit_2_without_output(tmp_path, stack):
+    full = tmp_path / "full.tif"
+    tifffile.imwrite(full, stack, imagej=True, resolution=(1 / 0.1, 1 / 0.1), metadata={"unit": "um", "finterval": 0.1})
+    bad = tmp_path / "bad.tif"
+    bad.write_bytes(full.read_bytes()[:3000])
+    dark = tmp_path / "dark.tif"
+    tifffile.imwrite(dark, np.zeros((5, 16, 16), np.uint16), imagej=True, resolution=(10, 10),
+                     metadata={"unit": "um", "finterval": 0.1})
+    for movie in (bad, dark):
+        out = tmp_path / f"{movie.stem}.parquet"
+        r = subprocess.run([sys.executable, "-m", "ptrack", "track", str(movie), "--out", str(out)],
+                           capture_output=True, text=True)
+        assert r.returncode == 2, r.stderr
+        assert r.stderr.startswith("error:") and "Traceback" not in r.stderr
+        assert len(r.stderr.strip().splitlines()) == 1
+        assert not out.exists()
+        assert not list(tmp_path.glob(f".{out.name}*"))
