@@ -60,7 +60,7 @@ def test_flux_conserved_and_peak_where_truth_says():
     for z, radius in [(0.0, 0.0), (2e-6, 250e-9), (-1.5e-6, 0.0)]:
         t = one_particle(70.3, 67.8, z=z)  # the patch (PSF tails included) lies inside the frame
         img = next(expected_frames(t, (140, 140), Optics(astigmatism=1e-7), cam, radius=radius))
-        assert img.sum() == pytest.approx(12345.0, rel=1e-9)
+        assert img.sum() == pytest.approx(12345.0, rel=1e-6)
         assert img.min() > -1e-6 * img.max()  # an intensity, no ringing below zero worth the name
     # in focus the brightest pixel is the one containing the particle
     img = next(expected_frames(one_particle(40.3, 37.8), (80, 80), Optics(), cam))
@@ -108,7 +108,7 @@ def test_particle_size_blurs_and_keeps_flux():
     cam = Camera(photons=1e4, background=0.0)
     small = next(expected_frames(one_particle(60, 60), (120, 120), None, cam, radius=0.0))
     big = next(expected_frames(one_particle(60, 60), (120, 120), None, cam, radius=1.0e-6))
-    assert big.sum() == pytest.approx(small.sum(), rel=1e-9)
+    assert big.sum() == pytest.approx(small.sum(), rel=1e-6)
     # independent check in real space: the point image convolved with the projected ball
     # (density ~ sqrt(R^2 - r^2)), the kernel integrated over sub-pixel points
     from scipy.signal import fftconvolve
@@ -204,7 +204,7 @@ def test_motion_blur_is_centred_on_truth_and_elongated():
     blur = list(expected_frames(t, (160, 160), None, cam, motion_blur_substeps=16))[1]
     mx, my, sx, sy = _moments(blur)
     assert mx == pytest.approx(80.0, abs=0.02) and my == pytest.approx(80.0, abs=0.02)
-    assert blur.sum() == pytest.approx(1e5, rel=1e-9)
+    assert blur.sum() == pytest.approx(1e5, rel=1e-6)
     # the blurred frame is the mean of still images at the 16 sub-positions spread over the exposure
     xs = 80.0 + 8.0 * ((np.arange(16) + 0.5) / 16 - 0.5)
     f = np.arange(16)

@@ -92,40 +92,97 @@ class Camera:
         return asdict(self)
 
 
-# Poisson draws by inversion of the CDF for small means (from uniform numbers
-# drawn by the numpy Generator, so results follow the seed); means above this
-# go to numpy's Generator.poisson.
+# Poisson draws. A frame is mostly a constant background B (photo-electrons per
+# pixel) plus particle light on a few pixels: Poisson(B + r) = Poisson(B) + Poisson(r)
+# for r >= 0, so the background part is drawn by inverting a precomputed CDF table
+# (binary search, one uniform per pixel) and only pixels with r > 0 draw a second
+# number: by CDF inversion for small r, with numpy's Generator.poisson for large r.
+# Pixels below the background (brightfield dips) draw Poisson(lam) directly.
+# All uniforms come from the caller's numpy Generator: same seed, same frame.
 _SMALL_MEAN = 40.0
 
 
+def _poisson_cdf_table(mean: float) -> np.ndarray:
+    """CDF of Poisson(mean) up to where it reaches 1 in float64."""
+    if mean <= 0:
+        return np.ones(1)
+    kmax = int(mean + 12.0 * math.sqrt(mean) + 30)
+    k = np.arange(kmax + 1)
+    from scipy.stats import poisson as _p
+
+    cdf = _p.cdf(k, mean)
+    cdf[-1] = 1.0
+    return cdf
+
+
 @njit(cache=True)
-def _poisson_small(lam, u, out, big_mask):
-    """Inversion sampling of Poisson(lam) for lam <= _SMALL_MEAN; flags larger means in big_mask."""
-    n = lam.size
-    for i in range(n):
-        m = lam[i]
-        if m <= 0.0:
-            out[i] = 0.0
-            continue
-        if m > 40.0:
-            big_mask[i] = True
-            continue
-        p = math.exp(-m)
-        c = p
-        k = 0
-        ui = u[i]
-        while ui > c and k < 200:
+def _classify(lam, B, eps, cls):
+    """0: background only; 1: background + small residual; 2: + large residual; 3: below background."""
+    n1 = 0
+    for i in range(lam.size):
+        r = lam[i] - B
+        if r > eps:
+            if r <= 40.0:
+                cls[i] = 1
+                n1 += 1
+            else:
+                cls[i] = 2
+        elif r < -eps:
+            cls[i] = 3
+        else:
+            cls[i] = 0
+    return n1
+
+
+@njit(cache=True)
+def _guide_table(cdf, G):
+    """guide[g] = smallest k with cdf[k] >= g / G (start of the linear search for u in [g/G, (g+1)/G))."""
+    guide = np.empty(G, dtype=np.int64)
+    k = 0
+    for g in range(G):
+        t = g / G
+        while cdf[k] < t:
             k += 1
-            p *= m / k
-            c += p
+        guide[g] = k
+    return guide
+
+
+@njit(cache=True)
+def _poisson_split(lam, B, cdf, guide, u1, cls, u2, out):
+    j = 0
+    G = guide.size
+    for i in range(lam.size):
+        c = cls[i]
+        if c == 3:
+            out[i] = 0.0  # filled by the caller
+            continue
+        # background part: smallest k with cdf[k] >= u, from the guide table
+        u = u1[i]
+        k0 = guide[int(u * G)]
+        while cdf[k0] < u:
+            k0 += 1
+        k = float(k0)
+        if c == 1:
+            r = lam[i] - B
+            p = math.exp(-r)
+            cum = p
+            kk = 0
+            uu = u2[j]
+            j += 1
+            while uu > cum and kk < 400:
+                kk += 1
+                p *= r / kk
+                cum += p
+            k += kk
         out[i] = k
 
 
 @njit(cache=True)
-def _to_adu(e, read, gain, offset, maxv, out):
+def _to_adu(e, z, read_noise, gain, offset, maxv, out):
+    """ADU = clip(round(gain * (electrons + read_noise * z) + offset), 0, maxv), z standard normal."""
     n = e.size
     for i in range(n):
-        v = gain * (e[i] + read[i]) + offset
+        v = gain * (e[i] + read_noise * z[i]) + offset
         v = math.floor(v + 0.5)
         if v < 0.0:
             v = 0.0
@@ -134,19 +191,32 @@ def _to_adu(e, read, gain, offset, maxv, out):
         out[i] = np.uint16(v)
 
 
-def poisson(lam: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Poisson draws (float64) with means ``lam``, deterministic for a given Generator state.
+def poisson(lam: np.ndarray, rng: np.random.Generator, background: float | None = None) -> np.ndarray:
+    """Poisson draws (float64) with means ``lam``; deterministic for a given Generator state.
 
-    Small means by CDF inversion in a numba kernel (fast), large means with
-    ``rng.poisson``. Exact in distribution for both.
+    ``background``: the common mean of most pixels (default: the median of
+    ``lam``); only the excess over it costs a second draw. Exact in
+    distribution (the split is the additivity of independent Poisson variables).
     """
     flat = np.ascontiguousarray(lam, dtype=np.float64).ravel()
-    u = rng.random(flat.size)
+    if flat.size == 0:
+        return np.zeros(np.shape(lam))
+    B = float(np.median(flat)) if background is None else float(background)
+    B = max(B, 0.0)
+    cdf = _poisson_cdf_table(B)
+    cls = np.empty(flat.size, dtype=np.int8)
+    eps = 1e-9 * max(B, 1.0)
+    n1 = _classify(flat, B, eps, cls)
+    u1 = rng.random(flat.size)
+    u2 = rng.random(n1)
     out = np.empty(flat.size)
-    big = np.zeros(flat.size, dtype=np.bool_)
-    _poisson_small(flat, u, out, big)
+    _poisson_split(flat, B, cdf, _guide_table(cdf, 4 * cdf.size), u1, cls, u2, out)
+    big = cls == 2
     if big.any():
-        out[big] = rng.poisson(flat[big])
+        out[big] += rng.poisson(flat[big] - B)
+    low = cls == 3
+    if low.any():
+        out[low] = rng.poisson(np.maximum(flat[low], 0.0))
     return out.reshape(np.shape(lam))
 
 
@@ -165,11 +235,11 @@ def expose(photons: np.ndarray, camera: Camera, rng: np.random.Generator) -> np.
     ndarray (H, W), uint16
     """
     lam = np.maximum(photons, 0.0) * camera.quantum_efficiency
-    e = poisson(lam, rng)
+    e = poisson(lam, rng, background=camera.background * camera.quantum_efficiency)
     if camera.read_noise > 0:
-        read = rng.standard_normal(e.size) * camera.read_noise
+        read = rng.standard_normal(e.size, dtype=np.float32)
     else:
-        read = np.zeros(e.size)
+        read = np.zeros(e.size, dtype=np.float32)
     out = np.empty(e.size, dtype=np.uint16)
-    _to_adu(e.ravel(), read, float(camera.gain), float(camera.offset), float(camera.max_adu), out)
+    _to_adu(e.ravel(), read, float(camera.read_noise), float(camera.gain), float(camera.offset), float(camera.max_adu), out)
     return out.reshape(np.shape(photons))

@@ -61,6 +61,22 @@ def _add_patches(frame, patches, iy0, ix0, sign):
                 frame[y0 + r, x0 + c] += sign * patches[k, r, c]
 
 
+@njit(cache=True)
+def _otf_accumulate(stack, i0, w, ey, ex, amp, out):
+    """out[k] += amp[k] * ((1 - w[k]) stack[i0[k]] + w[k] stack[i0[k] + 1]) * ey[k][:, None] * ex[k][None, :]."""
+    K, n, q = out.shape
+    last = stack.shape[0] - 1
+    for k in range(K):
+        i = i0[k]
+        j = min(i + 1, last)
+        a0 = np.float32(amp[k] * (1.0 - w[k]))
+        a1 = np.float32(amp[k] * w[k])
+        for r in range(n):
+            e = ey[k, r]
+            for c in range(q):
+                out[k, r, c] += (a0 * stack[i, r, c] + a1 * stack[j, r, c]) * (e * ex[k, c])
+
+
 class _Renderer:
     """Expected photon images of point-like / spherical emitters from a PSF stack."""
 
@@ -80,21 +96,20 @@ class _Renderer:
                 self._size_cache[radius] = t
         return t
 
-    def otf_at(self, defocus: np.ndarray) -> np.ndarray:
+    def plane_weights(self, defocus: np.ndarray):
+        """Index of the PSF plane below each defocus and the linear weight of the one above."""
         st = self.stack
-        zi = (defocus - st.z0) / st.dz
+        zi = (np.asarray(defocus, dtype=np.float64) - st.z0) / st.dz
         i0 = np.clip(np.floor(zi).astype(np.int64), 0, max(st.nz - 2, 0))
-        if st.nz == 1:
-            return st.otf[np.zeros(len(defocus), dtype=np.int64)]
-        w = np.clip(zi - i0, 0.0, 1.0)[:, None, None]
-        return st.otf[i0] * (1.0 - w) + st.otf[i0 + 1] * w
+        w = np.clip(zi - i0, 0.0, 1.0) if st.nz > 1 else np.zeros(len(zi))
+        return np.ascontiguousarray(i0), np.ascontiguousarray(w)
 
-    def ramp(self, dy: np.ndarray, dx: np.ndarray) -> np.ndarray:
-        """Fourier phase ramp placing the source at patch position (c + dy, c + dx), c = n // 2."""
+    def ramps(self, dy: np.ndarray, dx: np.ndarray):
+        """1D Fourier phase ramps placing each source at patch position (c + dy, c + dx), c = n // 2."""
         c = self.n // 2
-        ey = np.exp(-2j * np.pi * self.fy[None, :] * (c + dy)[:, None])
-        ex = np.exp(-2j * np.pi * self.fx[None, :] * (c + dx)[:, None])
-        return ey[:, :, None] * ex[:, None, :]
+        ey = np.exp(-2j * np.pi * self.fy[None, :] * (c + dy)[:, None]).astype(np.complex64)
+        ex = np.exp(-2j * np.pi * self.fx[None, :] * (c + dx)[:, None]).astype(np.complex64)
+        return ey, ex
 
     def patches(self, x_px, y_px, defocus, radius, photons, sub=None):
         """Patches (K, n, n) of expected photons and their top-left frame indices.
@@ -106,19 +121,19 @@ class _Renderer:
         ix = np.rint(x_px).astype(np.int64)
         iy = np.rint(y_px).astype(np.int64)
         c = self.n // 2
+        # single precision: ~1e-7 relative, far below shot noise, twice the speed of double
+        otf = np.zeros((len(x_px), self.n, self.n // 2 + 1), dtype=np.complex64)
+        photons = np.ascontiguousarray(photons, dtype=np.float64)
         if sub is None:
-            otf = self.otf_at(defocus) * self.ramp(y_px - iy, x_px - ix)
-        else:
-            otf = None
-            for w, xs, ys, zs in sub:
-                term = self.otf_at(zs) * self.ramp(ys - iy, xs - ix)
-                term *= w
-                otf = term if otf is None else otf + term
+            sub = [(1.0, x_px, y_px, defocus)]
+        for w, xs, ys, zs in sub:
+            i0, wz = self.plane_weights(zs)
+            ey, ex = self.ramps(ys - iy, xs - ix)
+            _otf_accumulate(self.stack.otf, i0, wz, ey, ex, photons * w, otf)
         for r in np.unique(radius):
             if r > 0:
                 sel = radius == r
-                otf[sel] *= self._size(float(r))
-        otf *= photons[:, None, None]
+                otf[sel] *= self._size(float(r)).astype(np.float32)
         pat = sfft.irfft2(otf, s=(self.n, self.n), workers=1)
         return pat, iy - c, ix - c
 
@@ -259,7 +274,7 @@ class _Scene:
         iy = np.rint(self.y_px[idx]).astype(np.int64)
         keep = (ix + n - c > 0) & (ix - c < W) & (iy + n - c > 0) & (iy - c < H) & (self.photons[idx] > 0)
         kidx = np.nonzero(keep)[0]
-        per = max(1, int(_CHUNK_BYTES // (n * (n // 2 + 1) * 16 * 3)))
+        per = max(1, int(_CHUNK_BYTES // (n * (n // 2 + 1) * 8 * 3)))
         sign = -1.0 if brightfield else 1.0
         for s in range(0, len(kidx), per):
             loc = kidx[s:s + per]

@@ -253,7 +253,7 @@ class PSFStack:
     ----------
     z0, dz : float
         Defocus of plane 0 and plane spacing, m.
-    otf : ndarray, complex, (nz, n, n//2+1)
+    otf : ndarray, complex64, (nz, n, n//2+1)
     pixel : float
         Sample pixel size, m.
     n : int
@@ -289,14 +289,14 @@ def build_psf_stack(optics: Optics, pixel: float, zmin: float, zmax: float, max_
     if n is None:
         n = patch_size(optics, pixel, max(abs(zmin), abs(zmax)), max_radius)
     step = float(optics.psf_z_step)
-    plane_bytes = n * (n // 2 + 1) * 16
+    plane_bytes = n * (n // 2 + 1) * 8
     span = max(zmax - zmin, 0.0)
     nz = int(math.floor(span / step + 1e-9)) + 2
     if nz * plane_bytes > max_bytes:
         nz = max(2, int(max_bytes // plane_bytes))
         step = span / (nz - 1) if span > 0 else step
     zs = zmin + step * np.arange(nz)
-    otf = otf_planes(optics, pixel, n, zs)
+    otf = otf_planes(optics, pixel, n, zs).astype(np.complex64)
     return PSFStack(z0=float(zmin), dz=step, otf=otf, pixel=pixel, n=n)
 
 
