@@ -357,15 +357,28 @@ def drag_coefficient(re):
     return _out(out.reshape(re.shape))
 
 
+@njit(cache=True)
+def _map_drag(v, R, rho, mu, out):
+    for i in range(v.size):
+        out[i] = drag_force_nb(v[i], R[i], rho[i], mu[i])
+
+
 def drag_force(speed, radius, fluid_density, viscosity):
-    """Drag force magnitude ``1/2 C_D(Re) pi R^2 rho_f v^2`` (N), vectorised over arrays."""
-    v, R, rho, mu = np.broadcast_arrays(_arr("speed", speed, nonneg=True), _arr("radius", radius, positive=True),
-                                        _arr("fluid_density", fluid_density, positive=True),
-                                        _arr("viscosity", viscosity, positive=True))
-    out = np.empty(v.shape)
-    for idx in np.ndindex(v.shape):
-        out[idx] = drag_force_nb(v[idx], R[idx], rho[idx], mu[idx])
-    return _out(out)
+    """Drag force magnitude ``1/2 C_D(Re) pi R^2 rho_f v^2`` (N), vectorised over arrays.
+
+    Parameters
+    ----------
+    speed : m/s (>= 0, relative to the fluid); radius : m; fluid_density : kg/m^3;
+    viscosity : Pa s. All broadcast together.
+    """
+    arrs = np.broadcast_arrays(_arr("speed", speed, nonneg=True), _arr("radius", radius, positive=True),
+                               _arr("fluid_density", fluid_density, positive=True),
+                               _arr("viscosity", viscosity, positive=True))
+    shape = arrs[0].shape
+    flat = [np.ascontiguousarray(a, dtype=np.float64).ravel() for a in arrs]
+    out = np.empty(flat[0].size)
+    _map_drag(flat[0], flat[1], flat[2], flat[3], out)
+    return _out(out.reshape(shape))
 
 
 def buoyant_weight(radius, particle_density, fluid_density, g: float = STANDARD_GRAVITY):

@@ -280,6 +280,10 @@ def test_cli_height(capsys, tmp_path):
     res = json.loads(out.read_text())
     assert res["parallel"]["first_order"] == pytest.approx(1 - 9 / 16 / 4)
     assert res["perpendicular"]["brenner"] == pytest.approx(1 / 1.380204, rel=1e-6)
+    assert main(["wall", "--radius", "250e-9", "--height", "1e-6", "--D0", "8.589e-13", "--json", str(out)]) == 0
+    assert "um^2/s" in capsys.readouterr().out
+    res = json.loads(out.read_text())
+    assert res["D_parallel_m2_per_s"]["recommended"] == pytest.approx(8.589e-13 * res["parallel"]["recommended"])
 
 
 def test_cli_ratio_reproduces_seed(capsys, tmp_path):

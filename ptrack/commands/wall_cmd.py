@@ -28,6 +28,8 @@ def add_arguments(parser):
                         help="direction in which --ratio was measured (default parallel, i.e. D_x, D_y)")
     parser.add_argument("--first-order", action="store_true",
                         help="use only the seed's eq. 4.1 (1 - 9/16 a/h) for the parallel result")
+    parser.add_argument("--D0", type=float, metavar="D0",
+                        help="bulk diffusion coefficient, m^2/s: with --height also print the hindered D values")
     parser.add_argument("--json", metavar="OUT", help="also write the results (SI units) to this JSON file")
 
 
@@ -73,10 +75,20 @@ def run(args) -> int:
         lines.append("D_perpendicular/D0:")
         lines.append(f"  {'Brenner (1961) exact series':<40s} {perp['brenner']:.5f}")
         lines.append(f"  {'Bevan & Prieve (2000)':<40s} {perp['bevan_prieve']:.5f}")
+        if args.D0 is not None:
+            D0 = check_positive("--D0", args.D0)
+            result["D0_m2_per_s"] = D0
+            result["D_parallel_m2_per_s"] = {k: D0 * v for k, v in par.items()}
+            result["D_perpendicular_m2_per_s"] = {k: D0 * v for k, v in perp.items()}
+            best = par.get("recommended", par["first_order"])
+            lines.append(f"with D0 = {D0 * 1e12:.4g} um^2/s: D_parallel = {D0 * best * 1e12:.4g} um^2/s, "
+                         f"D_perpendicular = {D0 * perp['brenner'] * 1e12:.4g} um^2/s")
     else:
         r = args.ratio
         if not (math.isfinite(r) and 0 < r < 1):
             raise UserError(f"--ratio {r!r} is outside (0, 1)", "give the measured D over the bulk D0, between 0 and 1")
+        if args.D0 is not None:
+            raise UserError("--D0 is used with --height only", "with --ratio, divide the measured D by D0 yourself")
         result.update(ratio=r, direction=args.direction)
         lines.append(f"measured D/D0 = {r:.5g} ({args.direction} to the wall)")
         if args.direction == "parallel":
