@@ -1,0 +1,144 @@
+"""MSD and diffusion coefficients of a trajectories table (Parquet or CSV, SI units).
+
+Prints D +- standard error per axis in m^2/s and um^2/s (the seed's Table 4.1
+layout: D_x, D_y, D_xy side by side), the localisation error, the number of
+tracks, the tracks flagged as non-diffusive (power-law exponent alpha outside
+the range expected for Brownian tracks of the same length), and, when a
+radius and a viscosity are given (or the table has a 'radius' column), the
+Stokes-Einstein value kB T / (6 pi mu r) and the ratio D / D_SE. The
+temperature defaults to 293.15 K (room temperature, as in the seed). Writes
+the log-log MSD plot with the fitted model (default: <TRAJ>_msd.png beside
+the input) and, with --json, a machine-readable summary.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import UserError, atomic_output, check_positive
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("traj", metavar="TRAJ", help="trajectories table (.parquet or .csv; frame, t, particle, x, y, z in SI units)")
+    p.add_argument("--dims", default="x,y,xy", help="comma-separated axes: x, y, z, xy, xz, yz, xyz (default: x,y,xy)")
+    p.add_argument("--estimator", default="cve", choices=("cve", "ols"),
+                   help="cve: covariance-based estimator (Vestergaard et al. 2014, default); "
+                        "ols: least squares over the optimal number of lags (Michalet 2010)")
+    p.add_argument("--motion-blur", type=float, default=1 / 6,
+                   help="motion-blur parameter R: 1/6 full-frame exposure (default), 0 instantaneous (simulations)")
+    p.add_argument("--radius", type=float, help="particle radius, m (for Stokes-Einstein; default: median of the table's 'radius' column if any)")
+    p.add_argument("--viscosity", type=float, help="fluid viscosity, Pa s (for Stokes-Einstein)")
+    p.add_argument("--temperature", type=float, default=293.15, help="temperature, K (default 293.15)")
+    p.add_argument("--max-lag", type=int, default=None, help="longest lag of the MSD curve, frames (default min(100, longest track - 1))")
+    p.add_argument("--subtract-drift", action="store_true", help="remove the common drift first (with the (1 - 1/M) bias correction)")
+    p.add_argument("--exclude-flagged", action="store_true", help="leave out the tracks flagged as non-diffusive")
+    p.add_argument("--flag-level", type=float, default=0.01, help="false-positive rate of the non-diffusive flag on Brownian tracks (default 0.01)")
+    p.add_argument("--n-boot", type=int, default=200, help="bootstrap resamples over whole particles (default 200)")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the bootstrap and flag bounds")
+    p.add_argument("--json", metavar="OUT", help="write a JSON summary")
+    p.add_argument("--plot", metavar="OUT.png", help="MSD plot path (default <TRAJ>_msd.png)")
+    p.add_argument("--no-plot", action="store_true", help="do not write the plot")
+
+
+def _fmt(v, e):
+    if v is None or not math.isfinite(v):
+        return "n/a"
+    return f"{v:.4g} +- {e:.2g}" if e is not None and math.isfinite(e) else f"{v:.4g}"
+
+
+def run(args) -> int:
+    from .. import msd as M
+    from ..table import read_table
+
+    axes = M._parse_axes(args.dims)
+    if args.radius is not None:
+        check_positive("--radius", args.radius)
+    if args.viscosity is not None:
+        check_positive("--viscosity", args.viscosity)
+    check_positive("--temperature", args.temperature)
+    M_R = float(args.motion_blur)
+    if not (math.isfinite(M_R) and 0 <= M_R <= 0.25):
+        raise UserError(f"--motion-blur = {args.motion_blur!r} outside [0, 1/4]", "use 1/6 for full-frame exposure, 0 for instantaneous")
+    if args.n_boot < 0:
+        raise UserError(f"--n-boot = {args.n_boot} is negative", "give 0 or a positive number")
+    if not (0 < args.flag_level < 1):
+        raise UserError(f"--flag-level = {args.flag_level!r} outside (0, 1)", "give a rate such as 0.01")
+    if args.max_lag is not None and args.max_lag < 1:
+        raise UserError(f"--max-lag = {args.max_lag} must be at least 1", "give a number of frames")
+    if args.radius is not None and args.viscosity is None:
+        raise UserError("--radius given without --viscosity", "give --viscosity (Pa s) for the Stokes-Einstein value")
+    plot_path = None if args.no_plot else Path(args.plot) if args.plot else Path(args.traj).with_name(Path(args.traj).stem + "_msd.png")
+    if plot_path is not None and plot_path.suffix.lower() != ".png":
+        raise UserError(f"plot path {plot_path} is not a .png file", "give a path ending in .png")
+
+    df = read_table(args.traj)
+    radius = args.radius
+    if radius is None and args.viscosity is not None and "radius" in df.columns:
+        r = df["radius"].to_numpy(dtype=float)
+        r = r[np.isfinite(r)]
+        if len(r):
+            radius = float(np.median(r))
+            check_positive("median 'radius' of the table", radius)
+    if args.viscosity is not None and radius is None:
+        raise UserError("--viscosity given without --radius (and the table has no 'radius' column)",
+                        "give --radius (m) for the Stokes-Einstein value")
+
+    flag_axis = "xy" if all(a in ("x", "y", "xy") for a in axes) else "xyz" if any("z" in a for a in axes) else "xy"
+    flags = M.powerlaw_flags(df, axes=flag_axis, level=args.flag_level, seed=args.seed)
+    flagged = flags[flags["flagged"]]
+    used = df
+    if args.exclude_flagged and len(flagged):
+        used = df[~df["particle"].isin(flagged["particle"])]
+        used.attrs.update(df.attrs)
+        if used.empty:
+            raise UserError("every track is flagged as non-diffusive", "run without --exclude-flagged")
+    res = M.estimate_diffusion(used, axes=axes, estimator=args.estimator, motion_blur=M_R, n_boot=args.n_boot,
+                               seed=args.seed, subtract_drift=args.subtract_drift, max_lag=args.max_lag)
+    d_se = M.stokes_einstein(radius, args.viscosity, args.temperature) if radius is not None else None
+
+    # ---- report
+    print(f"{args.traj}: {res.n_particles} tracks, {res.n_displacements} frame-to-frame displacements, "
+          f"frame interval {res.frame_interval:.6g} s")
+    est = "CVE (Vestergaard 2014)" if res.estimator == "cve" else "least squares over the optimal number of lags (Michalet 2010)"
+    print(f"estimator: {est}; motion blur R = {res.motion_blur:.4g}; errors: {res.se_method}"
+          + (f" over {args.n_boot} particle resamples" if res.se_method == "bootstrap" else " (closed form)")
+          + ("; drift subtracted" if res.drift_corrected else ""))
+    print(f"{'axis':<5s} {'D (m^2/s)':>26s} {'D (um^2/s)':>22s} {'sigma_loc (nm)':>15s} {'lags':>5s}" + ("   D/D_SE" if d_se else ""))
+    for a in axes:
+        D, e = res.D[a], res.D_err[a]
+        line = f"{a:<5s} {_fmt(D, e):>26s} {_fmt(D * 1e12, e * 1e12):>22s} {res.sigma_loc[a] * 1e9:>15.3g} {str(res.n_lags[a] or '-'):>5s}"
+        if d_se:
+            line += f"   {D / d_se:.3f} +- {e / d_se:.2g}"
+        print(line)
+    if d_se:
+        print(f"Stokes-Einstein: D_SE = {d_se:.4g} m^2/s = {d_se * 1e12:.4g} um^2/s "
+              f"(r = {radius:.4g} m, mu = {args.viscosity:.4g} Pa s, T = {args.temperature:.5g} K)")
+    n_assessed = int(np.isfinite(flags["alpha"]).sum())
+    print(f"non-diffusive tracks: {len(flagged)} of {n_assessed} assessed (alpha test at a {args.flag_level:g} false-positive rate)"
+          + ("; excluded" if args.exclude_flagged and len(flagged) else ""))
+    for _, row in flagged.head(20).iterrows():
+        print(f"  particle {int(row['particle'])}: {row['reason']}")
+    if len(flagged) > 20:
+        print(f"  ... and {len(flagged) - 20} more")
+
+    if plot_path is not None:
+        M.plot_msd(res, plot_path, title=f"{Path(args.traj).name}: {res.estimator.upper()}")
+        print(f"wrote {plot_path}")
+    if args.json:
+        out = res.to_dict()
+        out["D_stokes_einstein"] = d_se
+        out["ratio_D_over_D_SE"] = {a: res.D[a] / d_se for a in axes} if d_se else None
+        out["stokes_einstein_inputs"] = ({"radius": radius, "viscosity": args.viscosity, "temperature": args.temperature}
+                                         if d_se else None)
+        out["flagged"] = [{"particle": int(r["particle"]), "alpha": float(r["alpha"]), "reason": r["reason"]}
+                          for _, r in flagged.iterrows()]
+        out["excluded_flagged"] = bool(args.exclude_flagged)
+        out["source"] = str(args.traj)
+        with atomic_output(args.json, "w") as fh:
+            json.dump(out, fh, indent=2)
+        print(f"wrote {args.json}")
+    return 0
