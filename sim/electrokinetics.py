@@ -24,8 +24,12 @@ Where the seed is wrong this module does what is physically right:
 * Seed eq. 3.36 (force balance ``qE = C_D pi R^2 rho v^2``) drops the 1/2 of
   the drag law eq. 3.2; with it the Stokes limit would give half the Stokes
   velocity. The balance here uses the drag of eq. 3.2 with its 1/2.
-* The drag-coefficient branches of eq. 3.5 are made continuous at
-  Re = 400 and Re = 2e5 (see :func:`drag_coefficient`).
+* The drag-coefficient branches of eq. 3.5 are made continuous (C_D and
+  C_D Re): at Re = 400 and 2e6 by taking the constant of the upper branch
+  from the lower one (0.08 % and 0.4 % changes), and across the drag
+  crisis by a power-law descent from Re = 2e5 to the seed's curve at 3e5
+  instead of a 6x jump at 3e5 (see :func:`drag_coefficient`). For Re <= 1
+  the law is exactly Stokes'.
 """
 from __future__ import annotations
 
