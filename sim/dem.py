@@ -705,6 +705,13 @@ def run_dem(scene, out_dir, resume=False, progress=True, checkpoint_every=None, 
                            v0=st.vel, height=float(np.max(st.pos[:, 2])) if st.n else 1.0)
     dt0 = scene.time.dt if fixed_dt else dt_auto
     sysm.dt = dt0
+    # runaway-speed limit: 20x the largest speed the external forces, the initial
+    # velocities and thermal motion can explain
+    v_ref = max(why.get("impact_speed", 0.0), float(np.max(np.linalg.norm(st.vel, axis=1))) if st.n else 0.0,
+                5.0 * math.sqrt(scene.kT / float(np.min(st.mass))) if scene.kT > 0 else 0.0)
+    if v_ref > 0:
+        sysm.limits[1] = 20.0 * v_ref
+    why["v_max"] = float(sysm.limits[1])
     sdict = scene.to_dict()
     fp = scene_fingerprint(sdict)
     n_out = int(round(scene.time.final / scene.time.output_interval))

@@ -87,22 +87,28 @@ def _bin_particles(pos, cell_size, lo, length, periodic):
                 if v > mx:
                     mx = v
             origin[d] = mn
-            nc = int(np.floor((mx - mn) / cell_size)) + 1
-            ncell[d] = nc
-            csize[d] = cell_size
+            ncf = np.floor((mx - mn) / cell_size) + 1.0
+            if ncf > 4.0e6:
+                # cap before converting to int (far outliers); coarsened below
+                csize[d] = (mx - mn) / 4.0e6 * 1.0000001
+                ncf = 4.0e6
+            ncell[d] = int(ncf)
+            if ncf < 4.0e6:
+                csize[d] = cell_size
     # keep memory O(N) when a few particles fly far away on an open axis
-    total = ncell[0] * ncell[1] * ncell[2]
     limit = _MAX_CELLS_PER_PARTICLE * n + 64
-    while total > limit:
+    totf = float(ncell[0]) * float(ncell[1]) * float(ncell[2])
+    while totf > limit:
         coarsened = False
         for d in range(3):
             if periodic[d] == 0 and ncell[d] > 1:
                 csize[d] *= 2.0
                 ncell[d] = (ncell[d] + 1) // 2
                 coarsened = True
-        total = ncell[0] * ncell[1] * ncell[2]
+        totf = float(ncell[0]) * float(ncell[1]) * float(ncell[2])
         if not coarsened:
             break
+    total = ncell[0] * ncell[1] * ncell[2]
     cell_of = np.empty(n, dtype=np.int64)
     counts = np.zeros(total + 1, dtype=np.int64)
     for i in range(n):

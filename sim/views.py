@@ -1,0 +1,119 @@
+"""Views of deposits: PNG snapshots coloured by coordination number and an
+extended-XYZ trajectory for OVITO.
+
+* :func:`snapshot_png` draws one frame as a 3D scatter (marker area scaled to
+  the particle radius) coloured by coordination number, like the seed's
+  Figs. 3.17-3.22; :func:`snapshots_png` draws a row of frames.
+* :func:`write_extxyz` writes frames in the extended XYZ format that OVITO,
+  ASE and VMD open: per frame a count line, a comment line with
+  ``Lattice="..." Properties=species:S:1:pos:R:3:radius:R:1:...`` and
+  ``Time=``, then one line per particle.  Positions stay in metres.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ptrack.errors import atomic_output
+
+
+def _mpl():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _draw(ax, pos, radius, cn, vmax, box=None, title=None):
+    x, y, z = pos[:, 0], pos[:, 1], pos[:, 2]
+    # marker size ~ radius in axis units (approximate; matplotlib sizes are in points^2)
+    span = max(np.ptp(x) if len(x) else 1.0, np.ptp(y) if len(y) else 1.0, 1e-12)
+    s = (radius / span * 260.0) ** 2
+    sc = ax.scatter(x, y, z, c=cn, cmap="viridis", vmin=0, vmax=vmax, s=s, depthshade=True, edgecolors="none")
+    if box is not None:
+        ax.set_xlim(0, box[0])
+        ax.set_ylim(0, box[1])
+    ax.set_zlim(0, max(float((z + radius).max()) if len(z) else 1.0, 1e-12))
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_zlabel("z (m)")
+    if title:
+        ax.set_title(title, fontsize=9)
+    return sc
+
+
+def snapshot_png(path, pos, radius, cn, box=None, title=None, vmax=None):
+    """One frame as a 3D scatter coloured by coordination number (PNG)."""
+    plt = _mpl()
+    fig = plt.figure(figsize=(6, 5))
+    ax = fig.add_subplot(111, projection="3d")
+    vmax = vmax if vmax is not None else max(12, int(np.max(cn)) if len(cn) else 12)
+    sc = _draw(ax, np.asarray(pos), np.asarray(radius), np.asarray(cn), vmax, box, title)
+    fig.colorbar(sc, ax=ax, shrink=0.7, label="coordination number")
+    with atomic_output(path, None) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    return Path(path)
+
+
+def snapshots_png(path, frames, box=None, vmax=None):
+    """Several frames side by side; ``frames`` = list of (t, pos, radius, cn)."""
+    plt = _mpl()
+    k = len(frames)
+    fig = plt.figure(figsize=(4.2 * k, 4.4))
+    vmax = vmax if vmax is not None else max([12] + [int(np.max(f[3])) for f in frames if len(f[3])])
+    sc = None
+    for a, (t, pos, radius, cn) in enumerate(frames):
+        ax = fig.add_subplot(1, k, a + 1, projection="3d")
+        sc = _draw(ax, np.asarray(pos), np.asarray(radius), np.asarray(cn), vmax, box, f"t = {t:.3g} s")
+    if sc is not None:
+        fig.colorbar(sc, ax=fig.axes, shrink=0.6, label="coordination number")
+    with atomic_output(path, None) as tmp:
+        fig.savefig(tmp, dpi=100, format="png")
+    plt.close(fig)
+    return Path(path)
+
+
+def write_extxyz(path, frames, box=None, periodic=(False, False, False), extra_names=()):
+    """Write frames as extended XYZ (OVITO-readable).
+
+    Parameters
+    ----------
+    path : path-like
+    frames : iterable of dict
+        Each with ``t`` (s), ``pos`` (N, 3) m, ``radius`` (N,) m, and optional
+        per-particle arrays named in ``extra_names`` (e.g. ``cn``, ``q6``) and
+        ``vel`` (N, 3) m/s.
+    box : (3,) edge lengths (m), optional
+        Written as the ``Lattice`` with ``pbc``.
+    """
+    with atomic_output(path, "w") as fh:
+        for fr in frames:
+            pos = np.asarray(fr["pos"], dtype=float)
+            n = len(pos)
+            props = "species:S:1:pos:R:3:radius:R:1"
+            cols = [pos, np.asarray(fr["radius"], dtype=float)[:, None]]
+            if "vel" in fr:
+                props += ":velo:R:3"
+                cols.append(np.asarray(fr["vel"], dtype=float))
+            for name in extra_names:
+                a = np.asarray(fr[name])
+                kind = "I" if np.issubdtype(a.dtype, np.integer) or a.dtype == bool else "R"
+                props += f":{name}:{kind}:1"
+                cols.append(a.astype(int if kind == "I" else float)[:, None])
+            header = f'Properties={props} Time={float(fr["t"]):.9g}'
+            if box is not None:
+                L = [float(v) for v in box]
+                header = (f'Lattice="{L[0]:.9g} 0 0 0 {L[1]:.9g} 0 0 0 {L[2]:.9g}" '
+                          f'pbc="{" ".join("T" if p else "F" for p in periodic)}" ') + header
+            fh.write(f"{n}\n{header}\n")
+            data = np.hstack(cols) if cols else np.empty((n, 0))
+            isint = []
+            for c in cols:
+                isint += [np.issubdtype(c.dtype, np.integer)] * c.shape[1]
+            for row in data:
+                fh.write("P " + " ".join(str(int(v)) if ii else f"{v:.9g}" for v, ii in zip(row, isint)) + "\n")
+    return Path(path)

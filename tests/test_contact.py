@@ -1,0 +1,181 @@
+"""Contact laws against hand calculations; restitution; Newton's third law; periodic images."""
+import math
+
+import numpy as np
+import pytest
+
+from sim.dem import DEMSystem
+from sim.forces.contact import (CONTACT_HOOKE, CONTACT_POWER, contact_force_pair, hooke_params, power_params,
+                                restitution_beta)
+from sim.forces.nearfield import NF_SEED, NF_YUKAWA, nearfield_pair
+
+
+def test_hooke_normal_hand_calculation():
+    kn, e = 1e5, 0.5
+    cp = hooke_params(kn, e, mu=0.0)
+    ri, rj, mi, mj = 0.1, 0.2, 2.0, 3.0
+    delta = 0.01
+    vi, vj = (0.0, 0.0, -1.0), (0.0, 0.0, 0.5)   # approaching along z
+    fi, fj, ti, tj, _ = contact_force_pair(CONTACT_HOOKE, cp, (0, 0, 0.29), (0, 0, 0), ri, rj, mi, mj, vi, vj)
+    meff = mi * mj / (mi + mj)
+    le = math.log(e)
+    eta = 2 * (-le / math.sqrt(math.pi**2 + le**2)) * math.sqrt(kn * meff)
+    vn = -1.5  # (v_i - v_j) . n, n = +z from j to i
+    want = kn * delta - eta * vn
+    np.testing.assert_allclose(fi, [0, 0, want], rtol=1e-12)
+    np.testing.assert_allclose(fj, -fi, rtol=0, atol=0)
+    assert not ti.any() and not tj.any()
+
+
+def test_hooke_tangential_spring_and_coulomb_limit():
+    kn, kt, mu = 1e5, 2e4, 0.3
+    cp = hooke_params(kn, 1.0, kt=kt, mu=mu, damp_t_ratio=0.0)  # e = 1: no damping
+    r = 0.1
+    xi, xj = (0, 0, 0.19), (0, 0, 0)  # delta = 0.01 -> F_n = 1000 N
+    dt = 1e-4
+    # small tangential velocity: stick, F_t = -kt * v dt
+    fi, _, ti, tj, h = contact_force_pair(CONTACT_HOOKE, cp, xi, xj, r, r, 1.0, 1.0, vi=(0.1, 0, 0), dt=dt)
+    np.testing.assert_allclose(fi, [-kt * 0.1 * dt, 0, 1000.0], rtol=1e-12)
+    np.testing.assert_allclose(h, [0.1 * dt, 0, 0], rtol=1e-12)
+    # torque on i = (-R n) x F_t with n = +z: (-R z) x (Ft x) = -R Ft y
+    np.testing.assert_allclose(ti, [0, -r * fi[0], 0], rtol=1e-12)
+    np.testing.assert_allclose(tj, ti, rtol=1e-12)
+    # large stored spring: slip at mu F_n, spring reset to the slip limit
+    fi, _, _, _, h = contact_force_pair(CONTACT_HOOKE, cp, xi, xj, r, r, 1.0, 1.0, vi=(1.0, 0, 0), dt=dt,
+                                        hist=(1.0, 0, 0))
+    np.testing.assert_allclose(fi, [-mu * 1000.0, 0, 1000.0], rtol=1e-12)
+    np.testing.assert_allclose(h, [mu * 1000.0 / kt, 0, 0], rtol=1e-12)
+    # rolling without sliding: v_i = w x (R n) cancels the contact-point velocity -> no tangential force
+    w = 0.5
+    fi, _, _, _, h = contact_force_pair(CONTACT_HOOKE, cp, xi, xj, r, r, 1.0, 1.0, vi=(w * r, 0, 0),
+                                        wi=(0, w, 0), dt=dt)
+    np.testing.assert_allclose(fi[:2], 0, atol=1e-12)
+
+
+def test_power_law_hand_calculation():
+    K, p, ccd = 1e9, 2.0, 1e8
+    ri, rj = 0.05, 0.07
+    d = 0.115
+    cp = power_params(K, p, ccd)
+    vi, vj = (0, 0, -0.2), (0, 0, 0.1)
+    fi, fj, _, _, _ = contact_force_pair(CONTACT_POWER, cp, (0, 0, d), (0, 0, 0), ri, rj, 1.0, 1.0, vi, vj)
+    delta = ri + rj - d
+    eps = delta / (ri + rj)
+    li = 0.5 * (d - (rj**2 - ri**2) / d)          # eq. 3.16
+    area = math.pi * (ri**2 - li**2)               # eq. 3.15
+    contact = K * eps**p * area                    # eq. 3.12 (repulsive, along n = +z on i)
+    dissip = ccd * (vj[2] - vi[2]) * area          # eq. 3.17 on i, along +z
+    np.testing.assert_allclose(fi, [0, 0, contact + dissip], rtol=1e-12)
+    np.testing.assert_array_equal(fj, -fi)
+    # the contact circle is the same seen from j
+    lj = 0.5 * (d - (ri**2 - rj**2) / d)
+    assert math.isclose(rj**2 - lj**2, ri**2 - li**2, rel_tol=1e-12)
+
+
+def test_power_law_bonding_switches_on_at_critical_strain():
+    K, Knb, eps_star = 1e9, 1e8, 0.02
+    r = 0.05
+    cp = power_params(K, 2.0, 0.0, K_nb=Knb, p_b=2.0, eps_star=eps_star, bonding=True)
+    for eps in (0.015, 0.025):
+        d = 2 * r * (1 - eps)
+        fi, _, _, _, _ = contact_force_pair(CONTACT_POWER, cp, (0, 0, d), (0, 0, 0), r, r, 1.0, 1.0)
+        area = math.pi * (r**2 - (d / 2) ** 2)
+        want = K * eps**2 * area - (Knb * eps**2 * area if eps >= eps_star else 0.0)  # eq. 3.19 attractive
+        np.testing.assert_allclose(fi[2], want, rtol=1e-12)
+
+
+def test_power_law_wall_uses_particle_strain():
+    K, r, z = 1e11, 0.05, 0.049
+    cp = power_params(K, 2.0, 0.0)
+    s = DEMSystem([[0.3, 0.3, z]], [[0, 0, 0]], [r], [1.0], model=CONTACT_POWER, cp=cp, cpw=cp, rotation=False,
+                  walls=[[0, 0, 0, 0, 0, 1]])
+    delta = r - z
+    want = K * (delta / r) ** 2 * math.pi * (r**2 - z**2)
+    np.testing.assert_allclose(s.force[0], [0, 0, want], rtol=1e-12)
+
+
+def test_nearfield_laws():
+    # seed eq. 3.24-3.25: (a1 r^-b1 - a2 r^-b2) along n_ij (toward j); a = abar qi qj
+    p = [0.5, 0.05, 1.0, 2.0, 0.3]
+    qi, qj, r = -0.8, -0.6, 0.12
+    toward_j = 0.5 * qi * qj / r - 0.05 * qi * qj / r**2
+    assert math.isclose(nearfield_pair(NF_SEED, p, r, 0.05, 0.05, qi, qj), -toward_j, rel_tol=1e-12)
+    assert nearfield_pair(NF_SEED, p, 0.31, 0.05, 0.05, qi, qj) == 0.0
+    # screened Coulomb: F = U (kappa + 1/r), U = A a_i a_j exp(-kappa (r - a_i - a_j)) / r
+    A, kappa, ai, aj, r = 2e-3, 1e8, 1e-7, 2e-7, 3.2e-7
+    U = A * ai * aj * math.exp(-kappa * (r - ai - aj)) / r
+    got = nearfield_pair(NF_YUKAWA, [A, kappa, 1e-6, 0, 0], r, ai, aj, 0, 0)
+    assert math.isclose(got, U * (kappa + 1 / r), rel_tol=1e-12)
+    # and it is minus the derivative of U (numerically)
+    h = 1e-13
+    Uf = lambda x: A * ai * aj * math.exp(-kappa * (x - ai - aj)) / x  # noqa: E731
+    assert math.isclose(got, -(Uf(r + h) - Uf(r - h)) / (2 * h), rel_tol=1e-5)
+
+
+@pytest.mark.parametrize("e", [0.3, 0.7, 0.95])
+def test_restitution_of_wall_impact_matches_damped_oscillator(e):
+    kn, m, r, v0 = 1e6, 0.5, 0.05, 2.0
+    cp = hooke_params(kn, e, mu=0.0)
+    omega = math.sqrt(kn / m)
+    beta = restitution_beta(e)
+    # contact time of the damped linear oscillator: pi / (omega sqrt(1 - beta^2))
+    tc = math.pi / (omega * math.sqrt(1 - beta**2))
+    dt = tc / 2000
+    s = DEMSystem([[0.0, 0.0, r + 0.5 * v0 * dt]], [[0, 0, -v0]], [r], [m], model=CONTACT_HOOKE, cp=cp, cpw=cp,
+                  rotation=False, walls=[[0, 0, 0, 0, 0, 1]], dt=dt)
+    s.run(int(1.5 * tc / dt))
+    assert s.pos[0, 2] > r  # left the wall
+    e_sim = s.vel[0, 2] / v0
+    assert abs(e_sim - e) < 2e-3 * max(e, 0.3), (e_sim, e)
+    # analytic: e = exp(-beta pi / sqrt(1 - beta^2))
+    assert math.isclose(math.exp(-beta * math.pi / math.sqrt(1 - beta**2)), e, rel_tol=1e-12)
+
+
+def _dense_random(n, L, seed, rad=0.05):
+    rng = np.random.default_rng(seed)
+    g = np.stack(np.meshgrid(*[np.arange(k) for k in (L / (1.9 * rad)).astype(int)], indexing="ij"), -1)
+    g = g.reshape(-1, 3)[:n] * 1.9 * rad + rad
+    return g + 0.003 * rng.standard_normal(g.shape), rng
+
+
+@pytest.mark.parametrize("model", [CONTACT_HOOKE, CONTACT_POWER])
+def test_newton_third_law_to_round_off(model):
+    L = np.array([1.0, 1.0, 1.0])
+    pos, rng = _dense_random(500, L, 1)
+    rad = 0.05 * (1 + 0.1 * rng.uniform(-1, 1, len(pos)))
+    m = 1540 * 4 / 3 * np.pi * rad**3
+    cp = hooke_params(1e7, 0.4, mu=0.5) if model == CONTACT_HOOKE else \
+        power_params(1e9, 2.0, 1e6, K_nb=1e8, K_rb=1e5, eps_star=0.01, K_f=1e9, mu_s=0.4, mu_d=0.3,
+                     bonding=True, friction=True)
+    q = -m
+    s = DEMSystem(pos, rng.standard_normal(pos.shape), rad, m, q, model=model, cp=cp, cpw=cp, rotation=True,
+                  nf_model=NF_SEED, nfp=np.array([0.5, 0.05, 1.0, 2.0, 0.15]), cutoff=0.15,
+                  box_length=L, periodic=(1, 1, 1), dt=1e-6)
+    s.omega[:] = rng.standard_normal(pos.shape)
+    s.compute_forces()
+    assert s.diag[4] > 200  # many contacts
+    scale = np.abs(s.force).sum()
+    assert np.abs(s.force.sum(0)).max() < 1e-12 * scale
+    # same pair once: each tangential force gives torques -R_i n x F_t and -R_j n x F_t
+    # (angular momentum is conserved only up to O(overlap/R), as in every soft-sphere DEM code)
+    assert np.isfinite(s.torque).all()
+
+
+def test_same_forces_across_periodic_boundary_and_in_interior():
+    L = np.array([2.0, 2.0, 2.0])
+    cp = hooke_params(1e6, 0.5, mu=0.4)
+    nfp = np.array([0.5, 0.05, 1.0, 2.0, 0.3])
+    base = np.array([[0.0, 0.0, 0.0], [0.08, 0.03, -0.04], [-0.2, 0.1, 0.05]])
+    vel = np.array([[0.1, -0.2, 0.3], [-0.3, 0.1, 0.0], [0.0, 0.2, -0.1]])
+    out = []
+    for centre in ([1.0, 1.0, 1.0], [1.97, 0.02, 1.0]):  # interior / straddling the x and y faces
+        pos = np.mod(base + np.array(centre), L)
+        s = DEMSystem(pos, vel, [0.05, 0.06, 0.05], [1.0, 1.2, 0.9], [-1, -1.2, -0.9], model=CONTACT_HOOKE, cp=cp,
+                      cpw=cp, nf_model=NF_SEED, nfp=nfp, cutoff=0.3, box_length=L, periodic=(1, 1, 1), dt=1e-5)
+        s.omega[:] = [[1, 0, 0], [0, 2, 0], [0, 0, 3]]
+        x0 = s.unwrapped
+        s.run(50)
+        out.append((s.force.copy(), s.torque.copy(), s.unwrapped - x0))
+    np.testing.assert_allclose(out[1][0], out[0][0], rtol=1e-9, atol=1e-9 * np.abs(out[0][0]).max())
+    np.testing.assert_allclose(out[1][1], out[0][1], rtol=1e-9, atol=1e-9 * np.abs(out[0][1]).max())
+    np.testing.assert_allclose(out[1][2], out[0][2], atol=1e-12)
