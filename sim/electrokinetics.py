@@ -393,17 +393,34 @@ def buoyant_weight(radius, particle_density, fluid_density, g: float = STANDARD_
 
 
 @njit(cache=True)
+def _cd_balance(re, above_crisis):
+    # C_D used inside the force balance. It equals drag_coefficient_nb wherever
+    # the lowest-speed root can lie, and is monotone in force elsewhere, so the
+    # fixed point is unique and is that root:
+    #  * force <= drag at the crisis start (Re = 2e5): the root has Re <= 2e5,
+    #    where drag rises monotonically; the plateau is continued past 2e5.
+    #  * larger force: drag stays below it for all Re <= 3e5, so the root has
+    #    Re > 3e5; the branch 0.000366 Re^0.4275 is continued below 3e5.
+    if above_crisis:
+        if re < _CD_RE3:
+            return _CD_C4 * re ** 0.4275
+        return drag_coefficient_nb(re)
+    if re > _CD_CRISIS_START:
+        return _CD_PLATEAU
+    return drag_coefficient_nb(re)
+
+
+@njit(cache=True)
 def _steady(force, radius, rho, mu, rtol, max_iter, v_out, re_out, it_out):
     # Fixed-point iteration of seed eq. 3.36 with the 1/2 of eq. 3.2:
     #   v <- sqrt(2 F / (C_D(Re(v)) pi R^2 rho)),
     # started from the Stokes velocity (exact when Re <= 1, so it converges
     # at the first step in the colloidal regime). Each branch C_D ~ Re^p
     # makes the map v -> c v^(-p/2) a contraction (|p/2| <= 0.5), so it
-    # converges linearly (the Stokes start is exact for Re <= 1 and lies
-    # above the solution otherwise, and the iterates then decrease
-    # monotonically onto it). Inside the drag crisis (2e5 < Re < 3e5) the
-    # drag force falls with speed, the balance can have three roots and the
-    # iteration does not settle: that is reported as non-convergence.
+    # converges linearly. Across the drag crisis (2e5 < Re < 3e5) the drag
+    # force falls with speed and the balance can have three roots; the
+    # lowest-speed one (the one a particle accelerating from rest reaches) is
+    # selected through _cd_balance.
     for i in range(force.size):
         F = abs(force[i])
         R = radius[i]
@@ -412,13 +429,16 @@ def _steady(force, radius, rho, mu, rtol, max_iter, v_out, re_out, it_out):
             re_out[i] = 0.0
             it_out[i] = 0
             continue
+        v_crisis = _CD_CRISIS_START * mu[i] / (2.0 * R * rho[i])
+        f_crisis = 0.5 * _CD_PLATEAU * math.pi * R * R * rho[i] * v_crisis * v_crisis
+        above = F > f_crisis
         v = F / (6.0 * math.pi * mu[i] * R)
         n = 0
         converged = False
         while n < max_iter:
             n += 1
             re = 2.0 * R * rho[i] * v / mu[i]
-            cd = drag_coefficient_nb(re)
+            cd = _cd_balance(re, above)
             v_new = math.sqrt(2.0 * F / (cd * math.pi * R * R * rho[i]))
             if abs(v_new - v) <= rtol * v_new:
                 v = v_new
@@ -438,6 +458,9 @@ def steady_state_velocity(force, radius, fluid_density, viscosity, rtol: float =
     iteration ``v <- sqrt(2 |F| / (C_D(Re(v)) pi R^2 rho_f))`` (the seed's
     printed eq. 3.36 lacks the 1/2 of eq. 3.2, which would halve the Stokes
     velocity), started from the Stokes velocity ``|F| / (6 pi mu R)``.
+    Where the balance has several solutions (forces whose speed falls in the
+    drag crisis, 2e5 < Re < 3e5) the lowest speed is returned: the one a
+    particle accelerating from rest reaches.
 
     Parameters
     ----------
@@ -476,12 +499,10 @@ def steady_state_velocity(force, radius, fluid_density, viscosity, rtol: float =
     _steady(flat[0], flat[1], flat[2], flat[3], float(rtol), int(max_iter), v, re, it)
     if np.any(it < 0):
         i = int(np.argmax(it < 0))
-        crisis = _CD_CRISIS_START / 2 < re[i] < _CD_RE3 * 2
         raise UserError(
             f"steady-state velocity did not converge to rtol={rtol:g} in {max_iter} iterations "
-            f"(force {flat[0][i]:.4g} N, radius {flat[1][i]:.4g} m, last Re {re[i]:.4g})"
-            + ("; near the drag crisis (Re 2e5-3e5) the force balance has several solutions" if crisis else ""),
-            "integrate the equation of motion instead" if crisis else "raise max_iter or loosen rtol",
+            f"(force {flat[0][i]:.4g} N, radius {flat[1][i]:.4g} m, last Re {re[i]:.4g})",
+            "raise max_iter or loosen rtol",
         )
     v = v.reshape(shape)
     if return_info:

@@ -170,9 +170,23 @@ def test_steady_state_all_regimes_balance_force():
     F = np.geomspace(1e-18, 1e2, 25)
     R, rho, mu = 1e-3, 1.2, 1.8e-5         # millimetre grain in air: Re from 1e-9 to 1e7
     v, re, n = ek.steady_state_velocity(F, R, rho, mu, return_info=True)
-    ok = (re < 1.5e5) | (re > 3.5e5)
-    np.testing.assert_allclose(ek.drag_force(v[ok], R, rho, mu), F[ok], rtol=1e-10)
+    np.testing.assert_allclose(ek.drag_force(v, R, rho, mu), F, rtol=1e-10)
     assert re.min() < 1e-6 and re.max() > 1e6
+
+
+def test_steady_state_lowest_root_across_drag_crisis():
+    # in 2e5 < Re < 3e5 the drag falls with speed, so a force can balance at three speeds;
+    # the solver returns the lowest (reached accelerating from rest), and drag balances there
+    R, rho, mu = 0.1, 1.2, 1.8e-5
+    re_true = np.array([1.9e5, 2.2e5, 2.6e5, 2.95e5, 3.5e5, 6e5])
+    v_true = re_true * mu / (2 * R * rho)
+    F = ek.drag_force(v_true, R, rho, mu)
+    v, re, n = ek.steady_state_velocity(F, R, rho, mu, return_info=True)
+    np.testing.assert_allclose(ek.drag_force(v, R, rho, mu), F, rtol=1e-10)
+    assert np.all(re <= re_true * (1 + 1e-9))
+    for vi, Fi in zip(v, F):        # no slower speed balances the force
+        slower = np.linspace(0, vi, 2001)[1:-1]
+        assert np.all(ek.drag_force(slower, R, rho, mu) < Fi)
 
 
 def test_steady_state_nonconvergence_is_an_error():
