@@ -1,0 +1,305 @@
+"""Tests of ptrack.msd against analytic results and synthetic ground truth."""
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from ptrack import msd as M
+from ptrack.errors import UserError
+from ptrack.table import make_table
+
+D0 = 1e-12      # m^2/s
+DT = 0.1        # s
+
+
+def _table(x, y, dt=DT, keep=None, z=None):
+    """Tracks (n_p, n_f) arrays -> trajectories table, optionally dropping rows (gaps)."""
+    n_p, n_f = x.shape
+    fr = np.tile(np.arange(n_f), n_p)
+    pa = np.repeat(np.arange(n_p), n_f)
+    k = np.ones(n_p * n_f, bool) if keep is None else keep
+    zz = None if z is None else z.ravel()[k]
+    return make_table(fr[k], fr[k] * dt, pa[k], x.ravel()[k], y.ravel()[k], z=zz, meta={"frame_interval": dt})
+
+
+# --------------------------------------------------------------------- Stokes-Einstein
+
+def test_stokes_einstein_reproduces_seed_values():
+    assert M.stokes_einstein(250e-9, 1e-3, 293.15) == pytest.approx(8.589e-13, rel=2e-4)
+    assert M.stokes_einstein(330.1e-9, 1e-3, 293.15) == pytest.approx(6.504e-13, rel=2e-4)
+    # seed Table 3.1, analytical column: T = 293 K, R = 1..1000 nm, mu = 1e-4..1e-2
+    R = np.array([1e-9, 10e-9, 100e-9, 1000e-9])
+    for mu, first in ((1e-4, 2.15e-9), (1e-3, 2.15e-10), (1e-2, 2.15e-11)):
+        d = M.stokes_einstein(R, mu, 293.0)
+        np.testing.assert_allclose(d, first * 10.0 ** -np.arange(4), rtol=3e-3)
+
+
+def test_stokes_einstein_vectorised_and_rejects_bad_input():
+    d = M.stokes_einstein(np.array([[1e-7], [2e-7]]), np.array([1e-3, 2e-3]), 300.0)
+    assert d.shape == (2, 2) and d[0, 0] == pytest.approx(2 * d[1, 0]) == pytest.approx(2 * d[0, 1])
+    for bad in (-1e-7, 0.0, np.nan):
+        with pytest.raises(UserError):
+            M.stokes_einstein(bad, 1e-3)
+
+
+# --------------------------------------------------------------------- MSD tables
+
+def _naive_msd(tracks, lag):
+    """Brute force: tracks = {pid: {frame: (x, y)}} -> (sum dx^2, sum dy^2, count)."""
+    sx = sy = n = 0
+    for pts in tracks.values():
+        for f, (x, y) in pts.items():
+            if f + lag in pts:
+                x2, y2 = pts[f + lag]
+                sx += (x2 - x) ** 2
+                sy += (y2 - y) ** 2
+                n += 1
+    return sx, sy, n
+
+
+def test_ensemble_and_particle_msd_with_gaps_match_brute_force():
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(4, 30)).cumsum(1) * 1e-7
+    y = rng.normal(size=(4, 30)).cumsum(1) * 1e-7
+    keep = rng.random(120) > 0.25
+    df = _table(x, y, keep=keep)
+    tracks = {}
+    for r in df.itertuples():
+        tracks.setdefault(r.particle, {})[r.frame] = (r.x, r.y)
+    ens = M.ensemble_msd(df, axes=("x", "y", "xy"), max_lag=10)
+    assert list(ens["lag"]) == list(range(1, 11))
+    np.testing.assert_allclose(ens["t"], ens["lag"] * DT)
+    for lag in range(1, 11):
+        sx, sy, n = _naive_msd(tracks, lag)
+        row = ens.iloc[lag - 1]
+        assert row["n_x"] == n == row["n_xy"]
+        assert row["msd_x"] == pytest.approx(sx / n, rel=1e-12)
+        assert row["msd_y"] == pytest.approx(sy / n, rel=1e-12)
+        assert row["msd_xy"] == pytest.approx((sx + sy) / n, rel=1e-12)
+    pm = M.particle_msd(df, axes=("x",), max_lag=5)
+    one = pm[(pm.particle == 2) & (pm.lag == 3)].iloc[0]
+    sx, _, n = _naive_msd({2: tracks[2]}, 3)
+    assert one["n_x"] == n and one["msd_x"] == pytest.approx(sx / n)
+
+
+def test_msd_of_uniform_motion_is_v2_t2_and_array_path_agrees():
+    f = np.arange(50.0)
+    pos = np.stack([2e-8 * f, -1e-8 * f])                       # two particles, constant velocity
+    m = M.msd_from_positions(pos, 10)
+    np.testing.assert_allclose(m[0], (2e-8 * np.arange(1, 11)) ** 2)
+    np.testing.assert_allclose(m[1], (1e-8 * np.arange(1, 11)) ** 2)
+    df = _table(pos, np.zeros_like(pos))
+    ens = M.ensemble_msd(df, axes=("x",), max_lag=10)
+    np.testing.assert_allclose(ens["msd_x"], m.mean(0))
+    m3 = M.msd_from_positions(np.stack([pos, pos], axis=2), 4)   # (n_p, n_f, 2): summed over dims
+    np.testing.assert_allclose(m3, 2 * m[:, :4])
+
+
+# --------------------------------------------------------------------- CVE: bias and closed-form variance
+
+@pytest.mark.parametrize("x", [0.0, 1.0, 10.0])
+@pytest.mark.parametrize("R", [0.0, 1 / 6])
+def test_cve_unbiased_and_scatter_matches_closed_form(x, R):
+    n_tr, n_f = 20000, 201
+    sigma = math.sqrt(x * D0 * DT)
+    pos = M.brownian_tracks(n_tr, n_f, D0, DT, sigma, R, seed=int(10 * x + 60 * R))
+    D, var = M.cve_from_positions(pos, DT, motion_blur=R)
+    sd = D.std(ddof=1)
+    se_mean = sd / math.sqrt(n_tr)
+    bias = D.mean() / D0 - 1
+    assert abs(bias) < max(0.01, 3.5 * se_mean / D0), (bias, se_mean / D0)
+    exact_sd = math.sqrt(M.cve_variance(D0, sigma**2, DT, n_f - 1, R))
+    assert sd == pytest.approx(exact_sd, rel=0.10)
+    # the per-track error estimate (closed form at the estimates) is right on average
+    assert math.sqrt(np.mean(var)) == pytest.approx(exact_sd, rel=0.10)
+
+
+def test_cve_with_explicitly_blurred_exposure():
+    """Independent of the MA(1) model: average fine Brownian sub-steps over a full-frame exposure."""
+    rng = np.random.default_rng(11)
+    n_tr, n_f, sub = 3000, 60, 24
+    h = DT / sub
+    steps = rng.normal(scale=math.sqrt(2 * D0 * h), size=(n_tr, n_f * sub))
+    fine = np.cumsum(steps, axis=1)
+    blurred = fine.reshape(n_tr, n_f, sub).mean(axis=2)      # shutter open the whole frame
+    sigma = 20e-9
+    obs = blurred + rng.normal(scale=sigma, size=blurred.shape)
+    D, _, s2 = M.cve_from_positions(obs, DT, motion_blur=1 / 6, return_sigma=True)
+    assert D.mean() == pytest.approx(D0, rel=0.02)
+    assert math.sqrt(max(s2.mean(), 0)) == pytest.approx(sigma, rel=0.1)
+    # ignoring the blur (R = 0) gets sigma wrong, D stays right
+    D0b, _, s2b = M.cve_from_positions(obs, DT, motion_blur=0.0, return_sigma=True)
+    assert D0b.mean() == pytest.approx(D.mean(), rel=1e-12)
+    assert s2b.mean() < 0.5 * s2.mean()
+
+
+# --------------------------------------------------------------------- CRLB and OLS efficiency
+
+def test_crlb_matches_dense_fisher_information():
+    D, sigma, N, R = 1e-12, 40e-9, 40, 1 / 6
+    c0 = lambda D, s2: 2 * D * DT * (1 - 2 * R) + 2 * s2
+    c1 = lambda D, s2: 2 * R * D * DT - s2
+    cov = lambda D, s2: (np.diag(np.full(N, c0(D, s2))) + np.diag(np.full(N - 1, c1(D, s2)), 1)
+                         + np.diag(np.full(N - 1, c1(D, s2)), -1))
+    S = cov(D, sigma**2)
+    Si = np.linalg.inv(S)
+    dS = [(cov(D * 1.001, sigma**2) - cov(D * 0.999, sigma**2)) / (0.002 * D),
+          (cov(D, sigma**2 * 1.001) - cov(D, sigma**2 * 0.999)) / (0.002 * sigma**2)]
+    I = np.array([[0.5 * np.trace(Si @ a @ Si @ b) for b in dS] for a in dS])
+    assert M.crlb_diffusion(D, sigma, DT, N, R) == pytest.approx(np.linalg.inv(I)[0, 0], rel=1e-6)
+    assert M.crlb_diffusion(D, sigma, DT, N, R, n_tracks=5, dims=2) == pytest.approx(np.linalg.inv(I)[0, 0] / 10, rel=1e-6)
+
+
+def test_optimal_lags_grow_with_localisation_error():
+    P = [M.optimal_lags(eps, [200])[0] for eps in (0.0, 1.0, 10.0, 100.0)]
+    assert P[0] == 2 and P == sorted(P) and P[-1] > P[1]
+
+
+@pytest.mark.parametrize("x,R", [(0.0, 0.0), (1.0, 1 / 6), (10.0, 0.0)])
+def test_ols_optimal_lags_near_cramer_rao_bound(x, R):
+    n_rep, n_p, n_f = 200, 20, 101
+    sigma = math.sqrt(x * D0 * DT)
+    rng = np.random.default_rng(int(100 * x + 7))
+    Ds = np.array([M.ols_from_positions(M.brownian_tracks(n_p, n_f, D0, DT, sigma, R, seed=rng), DT)[0]
+                   for _ in range(n_rep)])
+    bound = math.sqrt(M.crlb_diffusion(D0, sigma, DT, n_f - 1, R, n_tracks=n_p))
+    sd = Ds.std(ddof=1)
+    assert abs(Ds.mean() / D0 - 1) < 3.5 * sd / math.sqrt(n_rep) / D0
+    assert sd / bound < 1.2, sd / bound
+    # a fixed fraction of the curve (here half of it) is much worse
+    Df = []
+    rng = np.random.default_rng(5)
+    for _ in range(60):
+        m = M.msd_from_positions(M.brownian_tracks(n_p, n_f, D0, DT, sigma, R, seed=rng), 50).mean(0)
+        Df.append(M._ols_fit(m, 50)[1] / (2 * DT))
+    assert np.std(Df) > 1.5 * sd
+
+
+# --------------------------------------------------------------------- table-level estimates
+
+def _iso_table(n_p=40, n_f=150, sigma=30e-9, R=1 / 6, seed=0, gaps=0.1):
+    rng = np.random.default_rng(seed)
+    p = M.brownian_tracks(n_p, n_f, D0, DT, sigma, R, n_dims=2, seed=rng)
+    keep = rng.random(n_p * n_f) > gaps
+    return _table(p[..., 0], p[..., 1], keep=keep)
+
+
+@pytest.mark.parametrize("estimator", ["cve", "ols"])
+def test_dx_dy_dxy_agree_within_errors_on_isotropic_data(estimator):
+    df = _iso_table(seed=1)
+    r = M.estimate_diffusion(df, axes=("x", "y", "xy"), estimator=estimator, n_boot=200, seed=1)
+    assert r.se_method == "bootstrap" and r.n_particles == 40
+    for a in ("x", "y", "xy"):
+        assert abs(r.D[a] - D0) < 3.5 * r.D_err[a], (a, r.D[a], r.D_err[a])
+    assert abs(r.D["x"] - r.D["y"]) < 3.5 * math.hypot(r.D_err["x"], r.D_err["y"])
+    # the factor 2n: D_xy (n = 2) is the mean of the 1D values, not half or double
+    assert r.D["xy"] == pytest.approx(0.5 * (r.D["x"] + r.D["y"]), rel=0.05)
+    assert r.D_err["xy"] < min(r.D_err["x"], r.D_err["y"])
+    tab = r.table()
+    assert list(tab.columns) == ["D_x", "D_x_err", "D_y", "D_y_err", "D_xy", "D_xy_err"]
+    if estimator == "cve":
+        assert r.D["xy"] == pytest.approx(0.5 * (r.D["x"] + r.D["y"]), rel=1e-12)
+        assert r.sigma_loc["xy"] == pytest.approx(30e-9, rel=0.3)
+    else:
+        assert all(P >= 2 for P in r.n_lags.values())
+
+
+@pytest.mark.parametrize("estimator", ["cve", "ols"])
+def test_bootstrap_se_matches_replicate_scatter(estimator):
+    Ds, boots, models = [], [], []
+    for rep in range(80):
+        df = _iso_table(n_p=30, n_f=80, sigma=50e-9, seed=100 + rep, gaps=0.05)
+        r = M.estimate_diffusion(df, axes=("x",), estimator=estimator, n_boot=150, seed=rep)
+        Ds.append(r.D["x"])
+        boots.append(r.D_err_boot["x"])
+        models.append(r.D_err_model["x"])
+    sd = np.std(Ds, ddof=1)
+    assert np.mean(boots) == pytest.approx(sd, rel=0.2)
+    assert np.mean(models) == pytest.approx(sd, rel=0.2)
+    assert abs(np.mean(Ds) / D0 - 1) < 3.5 * sd / math.sqrt(80) / D0
+
+
+def test_bootstrap_is_reproducible_with_seed():
+    df = _iso_table(seed=4)
+    a = M.estimate_diffusion(df, seed=7).D_err
+    b = M.estimate_diffusion(df, seed=7).D_err
+    c = M.estimate_diffusion(df, seed=8).D_err
+    assert a == b and a != c
+
+
+def test_drift_subtraction_with_bias_correction_is_unbiased():
+    n_p, n_f, n_rep = 4, 200, 60                           # few particles: (1 - 1/M) = 0.75
+    ratios_corr, ratios_naive = [], []
+    for rep in range(n_rep):
+        rng = np.random.default_rng(500 + rep)
+        p = M.brownian_tracks(n_p, n_f, D0, DT, 20e-9, 0.0, n_dims=2, seed=rng)
+        common = np.cumsum(rng.normal(5e-7, 3e-7, size=(n_f, 2)), axis=0)   # drifting stage: mean + wander
+        p = p + common[None]
+        df = _table(p[..., 0], p[..., 1])
+        r = M.estimate_diffusion(df, axes=("xy",), subtract_drift=True, motion_blur=0.0, n_boot=0)
+        ratios_corr.append(r.D["xy"] / D0)
+        naive = M.estimate_diffusion(M.subtract_drift(df), axes=("xy",), motion_blur=0.0, n_boot=0)
+        ratios_naive.append(naive.D["xy"] / D0)
+    se = np.std(ratios_corr, ddof=1) / math.sqrt(n_rep)
+    assert abs(np.mean(ratios_corr) - 1) < max(0.02, 3.5 * se)
+    assert np.mean(ratios_naive) == pytest.approx(0.75, abs=max(0.02, 3.5 * se))
+    # without any drift removal, D is far too large
+    raw = M.estimate_diffusion(df, axes=("xy",), motion_blur=0.0, n_boot=0).D["xy"]
+    assert raw > 2 * D0
+
+
+def test_drift_table_recovers_uniform_drift():
+    p = M.brownian_tracks(50, 100, D0, DT, 0.0, 0.0, n_dims=2, seed=2)
+    p[..., 0] += 1e-7 * np.arange(100)[None]
+    df = _table(p[..., 0], p[..., 1])
+    d = M.drift(df, axes=("x", "y"), smoothing=5)
+    assert list(d.columns) == ["frame", "t", "x", "y", "n"]
+    assert np.polyfit(d["frame"], d["x"], 1)[0] == pytest.approx(1e-7, rel=0.05)
+    assert abs(np.polyfit(d["frame"], d["y"], 1)[0]) < 1e-8
+    corrected = M.subtract_drift(df, d)
+    assert abs(np.polyfit(corrected["frame"], corrected["x"], 1)[0]) < 1e-8
+
+
+# --------------------------------------------------------------------- power-law flags
+
+def test_powerlaw_false_positive_rate_on_brownian_tracks():
+    df = _iso_table(n_p=600, n_f=100, sigma=math.sqrt(1.0 * D0 * DT), seed=9, gaps=0.05)
+    f = M.powerlaw_flags(df, axes="xy", level=0.01, seed=0)
+    assert len(f) == 600 and f["alpha"].notna().all()
+    assert np.median(f["alpha"]) == pytest.approx(1.0, abs=0.05)
+    assert f["flagged"].mean() < 0.025          # nominal 1 %; binomial SD 0.4 %
+
+
+def test_powerlaw_flags_directed_and_confined_tracks():
+    rng = np.random.default_rng(21)
+    n_p, n_f = 60, 120
+    p = M.brownian_tracks(n_p, n_f, D0, DT, 20e-9, 1 / 6, n_dims=2, seed=rng)
+    step = math.sqrt(2 * D0 * DT)
+    p[0, :, 0] += 1.5 * step * np.arange(n_f)                    # advected toward an edge
+    p[1] = p[1, :1] + rng.normal(scale=0.3 * step, size=(n_f, 2))   # stuck: only jitter around a point
+    df = _table(p[..., 0], p[..., 1])
+    f = M.powerlaw_flags(df, level=0.01, seed=1).set_index("particle")
+    assert f.loc[0, "flagged"] and "directed" in f.loc[0, "reason"] and f.loc[0, "alpha"] > 1.3
+    assert f.loc[1, "flagged"] and "confined" in f.loc[1, "reason"] and f.loc[1, "alpha"] < 0.7
+    assert f["flagged"].sum() <= 4
+
+
+# --------------------------------------------------------------------- user errors
+
+def test_library_rejects_bad_input():
+    df = _iso_table(n_p=5, n_f=20, seed=3)
+    with pytest.raises(UserError, match="unknown axis"):
+        M.estimate_diffusion(df, axes=("w",))
+    with pytest.raises(UserError, match="2D"):
+        M.estimate_diffusion(df, axes=("z",))
+    with pytest.raises(UserError, match="estimator"):
+        M.estimate_diffusion(df, estimator="mle")
+    short = make_table([0, 1, 0, 1], [0, .1, 0, .1], [0, 0, 1, 1], [0, 1e-7, 0, 1e-7], [0, 0, 0, 0])
+    with pytest.raises(UserError, match="shorter than 3"):
+        M.estimate_diffusion(short)
+    gappy = make_table([0, 2, 4], [0, .2, .4], [0, 0, 0], [0, 1e-7, 2e-7], [0, 0, 0])
+    with pytest.raises(UserError, match="three consecutive"):
+        M.estimate_diffusion(gappy)
+    with pytest.raises(UserError):
+        M.cve_from_positions(np.array([[0.0, np.nan, 1.0]]), DT)
