@@ -168,6 +168,14 @@ def build_calibration(stack, z, pixel_size=None, template_size: int | None = Non
     if any(f is None for f in found):
         bad = [int(k) for k, f in enumerate(found) if f is None]
         raise UserError(f"no particle visible in calibration page(s) {bad[:5]}", "crop the stack to the calibrated range")
+    # the particle's lateral position varies slowly (stage drift) but each page's centroid is noisy:
+    # smooth the per-page centres with a quadratic trend in z
+    cyx = np.array([(f[0], f[1]) for f in found])
+    if K >= 5:
+        zn = (z - z.mean()) / (np.ptp(z) or 1.0)
+        for a in range(2):
+            cyx[:, a] = np.polyval(np.polyfit(zn, cyx[:, a], 2), zn)
+    found = [(cyx[k, 0], cyx[k, 1], found[k][2]) for k in range(K)]
     # each page gets its own square template, sized to its particle image (1.2 x the radius holding
     # 95 % of the light, at least 7 px): a small in-focus spot is not drowned in the noise of a
     # window sized for the most defocused page, which would lower its Cm.

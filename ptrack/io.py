@@ -306,6 +306,10 @@ def _open_tiff(path: Path, allow_float: bool, series_index: int = 0):
         if "S" in axes and shape[axes.index("S")] > 1 or getattr(page, "samplesperpixel", 1) > 1:
             raise UserError(f"{what} is RGB / has {getattr(page, 'samplesperpixel', 3)} samples per pixel; ptrack expects grayscale",
                             "give one grayscale channel (ImageJ: Image > Type > 16-bit, or Image > Color > Split Channels)")
+        if axes.replace("C", "Z") != axes and not set(axes) - set("CYX") and shape[axes.index("C")] > 7:
+            # an ImageJ stack written without axes metadata comes back as "CYX"; ImageJ composites
+            # have at most 7 channels, so a longer C axis is a stack of frames
+            axes = axes.replace("C", "Z")
         if "C" in axes and shape[axes.index("C")] > 1:
             raise UserError(f"{what} has {shape[axes.index('C')]} channels (axes {axes})",
                             "split the channels and give one (ImageJ: Image > Color > Split Channels)")

@@ -1,0 +1,124 @@
+"""GDPT: calibration templates, z by normalised cross-correlation, errors on bad calibrations."""
+import subprocess
+import sys
+
+import numpy as np
+import pandas as pd
+import pytest
+import tifffile
+
+from ptrack.calibration import (build_calibration, check_pixel_size, load_calibration, locate_3d, match_templates,
+                                read_calib_z)
+from ptrack.errors import UserError
+from ptrack.preprocess import prepare
+
+render = pytest.importorskip("sim.render")
+
+OPTICS = render.Optics(astigmatism=1.2e-7)
+CAMERA = render.Camera(photons=20000.0, background=15.0)
+PX = render.sample_pixel_size(OPTICS, CAMERA.pixel_pitch)
+Z = np.round(np.arange(-2e-6, 2.0001e-6, 0.1e-6), 12)
+STEP = 0.1e-6
+
+
+@pytest.fixture(scope="module")
+def calib():
+    stack = np.stack(list(render.calibration_images(Z, shape=(72, 72), optics=OPTICS, camera=CAMERA, seed=1)))
+    return build_calibration(stack, Z, PX, source="test")
+
+
+def test_calibration_pages_recovered(calib):
+    """Pages of an independent noisy stack come back at their own z, a small fraction of the step."""
+    errs, cms = [], []
+    for z, img in zip(Z, render.calibration_images(Z, shape=(72, 72), optics=OPTICS, camera=CAMERA, seed=2)):
+        df = locate_3d(prepare(img, background="none"), calib)
+        assert len(df) == 1
+        errs.append(df["z"].iloc[0] - z)
+        cms.append(df["cm"].iloc[0])
+        assert df["x_px"].iloc[0] == pytest.approx(35.0, abs=0.15)
+        assert df["y_px"].iloc[0] == pytest.approx(35.0, abs=0.15)
+    errs = np.abs(errs)
+    assert np.median(errs) < 0.15 * STEP and errs.max() < 0.6 * STEP, errs / STEP
+    assert min(cms) > 0.9
+
+
+def test_heights_between_pages_and_off_centre(calib):
+    rng = np.random.default_rng(3)
+    zs = rng.uniform(-1.9e-6, 1.9e-6, 25)
+    errs, xy = [], []
+    for i, z in enumerate(zs):
+        pos = (30 + rng.uniform(0, 10), 31 + rng.uniform(0, 10))
+        img = next(render.calibration_images([z], shape=(72, 72), optics=OPTICS, camera=CAMERA, position=pos, seed=10 + i))
+        df = locate_3d(prepare(img, background="none"), calib)
+        assert len(df) == 1
+        errs.append(df["z"].iloc[0] - z)
+        xy.append((df["x_px"].iloc[0] - pos[0], df["y_px"].iloc[0] - pos[1]))
+    errs = np.asarray(errs)
+    depth = Z[-1] - Z[0]
+    assert np.sqrt(np.mean(errs ** 2)) < 0.01 * depth          # < 1 % of the calibrated range
+    assert np.sqrt(np.mean(np.square(xy))) < 0.2
+
+
+def test_low_correlation_is_rejected(calib):
+    rng = np.random.default_rng(4)
+    noise = rng.normal(0, 10, (72, 72)).astype(np.float32)
+    assert len(match_templates(noise, [36], [36], calib, cm_min=0.5)) == 0
+
+
+def test_read_calib_z(tmp_path):
+    p = tmp_path / "z.csv"
+    pd.DataFrame({"page": [2, 0, 1], "z": [2e-6, 0.0, 1e-6]}).to_csv(p, index=False)
+    np.testing.assert_allclose(read_calib_z(p, 3), [0, 1e-6, 2e-6])
+    with pytest.raises(UserError, match="pages"):
+        read_calib_z(p, 4)
+    pd.DataFrame({"page": [0, 1, 2], "z": [0, 1, 2]}).to_csv(p, index=False)
+    with pytest.raises(UserError, match="micrometres"):
+        read_calib_z(p, 3)
+    pd.DataFrame({"slice": [0, 1, 2], "z": [0, 1e-6, 2e-6]}).to_csv(p, index=False)
+    with pytest.raises(UserError, match="page, z"):
+        read_calib_z(p, 3)
+
+
+def test_calibration_errors(tmp_path, calib):
+    with pytest.raises(UserError, match="pixel size"):
+        check_pixel_size(calib, PX * 2)
+    check_pixel_size(calib, PX * 1.001)
+    with pytest.raises(UserError, match="--calib-z|--calib-step"):
+        load_calibration(tmp_path / "nothing.tif")
+    with pytest.raises(UserError, match="at least 3"):
+        build_calibration(np.zeros((2, 10, 10)), [0, 1e-7])
+
+
+def test_cli_3d_and_pixel_size_mismatch(tmp_path, calib):
+    """3D tracking from the command line; a calibration with another pixel size is refused, no output."""
+    from ptrack.table import make_table, read_table
+
+    stack = np.stack(list(render.calibration_images(Z, shape=(72, 72), optics=OPTICS, camera=CAMERA, seed=5)))
+    res = (1e-6 / PX, 1e-6 / PX)
+    tifffile.imwrite(tmp_path / "calib.tif", stack, imagej=True, resolution=res, metadata={"unit": "um"})
+    tifffile.imwrite(tmp_path / "calib_wrong.tif", stack, imagej=True, resolution=(res[0] / 2, res[1] / 2),
+                     metadata={"unit": "um"})
+    pd.DataFrame({"page": np.arange(len(Z)), "z": Z}).to_csv(tmp_path / "calib_z.csv", index=False)
+    # a movie: 3 particles at fixed heights drifting sideways
+    n_f, pid = 8, np.arange(3)
+    fr = np.repeat(np.arange(n_f), 3)
+    p = np.tile(pid, n_f)
+    x = (np.array([30.0, 90.0, 60.0])[p] + 0.7 * fr) * PX
+    y = (np.array([30.0, 40.0, 95.0])[p] + 0.3 * fr) * PX
+    z = np.array([-1.23e-6, 0.41e-6, 1.57e-6])[p]
+    truth = make_table(fr, fr * 0.1, p, x, y, z, meta={"frame_interval": 0.1})
+    info = render.render_movie(truth, tmp_path / "m", shape=(128, 128), optics=OPTICS, camera=CAMERA, seed=6,
+                               progress=False)
+    out = tmp_path / "traj.parquet"
+    base = [sys.executable, "-m", "ptrack", "track", str(info["movie"]), "--out", str(out),
+            "--calib-z", str(tmp_path / "calib_z.csv"), "--gain", "2.17", "--offset", "100"]
+    r = subprocess.run(base + ["--calib", str(tmp_path / "calib_wrong.tif")], capture_output=True, text=True)
+    assert r.returncode == 2 and "pixel size" in r.stderr and not out.exists()
+    r = subprocess.run(base + ["--calib", str(tmp_path / "calib.tif")], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    t = read_table(out)
+    assert t["particle"].nunique() == 3 and len(t) == 3 * n_f
+    got = t.groupby("particle")["z"].mean().sort_values().to_numpy()
+    np.testing.assert_allclose(got, [-1.23e-6, 0.41e-6, 1.57e-6], atol=0.04e-6)
+    assert t["cm"].min() > 0.8
+    assert t.attrs["ptrack"]["calib_depth"] == pytest.approx(4e-6)
