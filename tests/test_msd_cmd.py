@@ -1,0 +1,106 @@
+"""Tests of the `ptrack msd` command."""
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ptrack import msd as M
+from ptrack.cli import main
+from ptrack.table import make_table, write_table
+
+D_SE = 8.589e-13   # r = 250 nm, water, 293.15 K (seed)
+DT = 0.05
+
+
+def _write(path, n_p=25, n_f=200, D=D_SE, seed=0, radius=None, z=False):
+    p = M.brownian_tracks(n_p, n_f, D, DT, 25e-9, 1 / 6, n_dims=3 if z else 2, seed=seed)
+    fr = np.tile(np.arange(n_f), n_p)
+    pa = np.repeat(np.arange(n_p), n_f)
+    opt = {} if radius is None else {"radius": np.full(n_p * n_f, radius)}
+    df = make_table(fr, fr * DT, pa, p[..., 0].ravel(), p[..., 1].ravel(), z=p[..., 2].ravel() if z else None,
+                    meta={"frame_interval": DT}, **opt)
+    write_table(df, path)
+    return path
+
+
+def test_msd_command_reports_d_stokes_einstein_json_and_plot(tmp_path, capsys):
+    traj = _write(tmp_path / "tr.parquet")
+    out, png = tmp_path / "o.json", tmp_path / "m.png"
+    rc = main(["msd", str(traj), "--radius", "250e-9", "--viscosity", "1e-3", "--json", str(out), "--plot", str(png)])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "um^2/s" in text and "m^2/s" in text and "D/D_SE" in text and "25 tracks" in text
+    res = json.loads(out.read_text())
+    assert res["D_stokes_einstein"] == pytest.approx(8.589e-13, rel=2e-4)
+    assert res["n_particles"] == 25 and res["estimator"] == "cve"
+    assert set(res["D"]) == {"x", "y", "xy"} == set(res["D_err"])
+    for a in ("x", "y", "xy"):
+        assert abs(res["D"][a] - D_SE) < 4 * res["D_err"][a]
+        assert res["ratio_D_over_D_SE"][a] == pytest.approx(res["D"][a] / D_SE, rel=1e-3)
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_msd_command_ols_3d_and_radius_from_table(tmp_path, capsys):
+    traj = _write(tmp_path / "tr3.csv", z=True, radius=250e-9)
+    out = tmp_path / "o.json"
+    rc = main(["msd", str(traj), "--dims", "x,y,z,xyz", "--estimator", "ols", "--viscosity", "1e-3",
+               "--json", str(out), "--no-plot"])
+    assert rc == 0
+    res = json.loads(out.read_text())
+    assert res["estimator"] == "ols" and all(res["n_lags"][a] >= 2 for a in ("x", "y", "z", "xyz"))
+    assert res["D_stokes_einstein"] == pytest.approx(8.589e-13, rel=2e-4)
+    assert abs(res["D"]["xyz"] - D_SE) < 4 * res["D_err"]["xyz"]
+    assert not (tmp_path / "tr3_msd.png").exists()
+
+
+def test_msd_command_default_plot_and_flags(tmp_path, capsys):
+    p = M.brownian_tracks(30, 150, D_SE, DT, 20e-9, 1 / 6, n_dims=2, seed=3)
+    p[0, :, 0] += 2.0 * math.sqrt(2 * D_SE * DT) * np.arange(150)     # advected track
+    fr = np.tile(np.arange(150), 30)
+    pa = np.repeat(np.arange(30), 150)
+    traj = write_table(make_table(fr, fr * DT, pa, p[..., 0].ravel(), p[..., 1].ravel()), tmp_path / "adv.parquet")
+    out = tmp_path / "o.json"
+    assert main(["msd", str(traj), "--json", str(out), "--exclude-flagged"]) == 0
+    res = json.loads(out.read_text())
+    assert 0 in [f["particle"] for f in res["flagged"]]
+    assert res["n_particles"] <= 29 and res["excluded_flagged"]
+    assert "directed" in capsys.readouterr().out
+    assert (tmp_path / "adv_msd.png").exists()
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["{missing}"], "not found"),
+    (["{corrupt}"], "cannot read"),
+    (["{traj}", "--radius", "nan", "--viscosity", "1e-3"], "--radius"),
+    (["{traj}", "--radius=-2e-7", "--viscosity", "1e-3"], "--radius"),
+    (["{traj}", "--radius", "2e-7"], "--viscosity"),
+    (["{traj}", "--dims", "x,w"], "unknown axis 'w'"),
+    (["{traj}", "--dims", "z"], "2D"),
+    (["{short}"], "shorter than 3"),
+    (["{traj}", "--plot", "{dir}/m.jpg"], ".png"),
+])
+def test_msd_command_bad_input_one_line_exit_2_no_output(tmp_path, capsys, args, needle):
+    traj = _write(tmp_path / "tr.parquet", n_p=3, n_f=30)
+    (tmp_path / "bad.parquet").write_bytes(b"not a parquet file at all")
+    short = write_table(make_table([0, 1, 0, 1], [0, .1, 0, .1], [0, 0, 1, 1], [0, 1e-7, 0, 2e-7], [0, 0, 0, 0]),
+                        tmp_path / "short.csv")
+    sub = {"missing": str(tmp_path / "nope.parquet"), "corrupt": str(tmp_path / "bad.parquet"),
+           "traj": str(traj), "short": str(short), "dir": str(tmp_path)}
+    argv = [a.format(**sub) for a in args]
+    out = tmp_path / "o.json"
+    before = set(tmp_path.iterdir())
+    rc = main(["msd", *argv, "--json", str(out)])
+    assert rc == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and needle in err[0], err
+    assert set(tmp_path.iterdir()) == before       # no JSON, no plot, no temporary files
+
+
+def test_msd_console_script_exit_status(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "ptrack", "msd", str(tmp_path / "none.parquet")],
+                       capture_output=True, text=True)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "not found" in r.stderr
