@@ -111,7 +111,7 @@ def cases_for(args) -> list[dict]:
 
         raise UserError(f"--particles {n} is too few for a slope", "give at least 100 particles")
     fields = [1.0e4] if args.quick else [5.0e3, 1.0e4, 2.0e4]
-    side = (n / 100_000) ** 0.5 * 1e-5  # lateral box side: C_s ~ 2e20 m^-3 (volume fraction ~ 1e-3) for any n
+    side = (n / 100_000) ** 0.5 * 3e-4  # lateral box side: C_s ~ 2.3e17 m^-3 (volume fraction ~ 1e-3)
     return [dict(DEFAULTS, field=E, n_particles=n, seed=args.seed * 1000 + k, area=side * side)
             for k, E in enumerate(fields)]
 
