@@ -295,6 +295,12 @@ def test_cli_ratio_reproduces_seed(capsys, tmp_path):
     assert res["height_m"]["first_order"] == pytest.approx(614.24e-9, rel=1e-4)
 
 
+def test_cli_plot(tmp_path, capsys):
+    png = tmp_path / "w.png"
+    assert main(["wall", "--radius", "250e-9", "--ratio", "0.8", "--plot", str(png)]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
 def test_cli_errors(capsys, tmp_path):
     out = tmp_path / "w.json"
     assert main(["wall", "--radius", "250e-9", "--height", "2e-7", "--json", str(out)]) == 2

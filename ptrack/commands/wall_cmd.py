@@ -30,6 +30,8 @@ def add_arguments(parser):
                         help="use only the seed's eq. 4.1 (1 - 9/16 a/h) for the parallel result")
     parser.add_argument("--D0", type=float, metavar="D0",
                         help="bulk diffusion coefficient, m^2/s: with --height also print the hindered D values")
+    parser.add_argument("--plot", metavar="PNG",
+                        help="also plot D/D0 against the centre height for every model, marking the result")
     parser.add_argument("--json", metavar="OUT", help="also write the results (SI units) to this JSON file")
 
 
@@ -115,8 +117,45 @@ def run(args) -> int:
                             "check the measured D and D0" + ("" if not args.first_order else ", or drop --first-order"))
         result["height_m"] = heights
     print("\n".join(lines))
+    if args.plot:
+        marks = [args.height] if args.height is not None else [v for v in result["height_m"].values() if v]
+        _plot(args.plot, a, marks, args.ratio)
+        print(f"wrote {args.plot}")
     if args.json:
         with atomic_output(args.json, "w") as fh:
             json.dump(result, fh, indent=2)
         print(f"wrote {args.json}")
     return 0
+
+
+def _plot(path, a, heights, ratio=None):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    x = 1.0 + np.geomspace(1e-4, 1e2, 600)
+    h = x * a
+    g = (h - a) * 1e6
+    fig, ax = plt.subplots(figsize=(6.4, 4.4))
+    ax.plot(g, wall.parallel_ratio(h, a, "auto"), "k-", label="parallel, recommended (GCB + Faxen)")
+    ax.plot(g, wall.parallel_ratio(h, a, "faxen"), "b--", label="parallel, Faxen to (a/h)^5")
+    first = wall.parallel_ratio(h, a, "first_order")
+    ax.plot(g, first, "c:", label="parallel, eq. 4.1 (1 - 9/16 a/h)")
+    ax.plot(g, wall.perpendicular_ratio(h, a, "brenner"), "r-", label="perpendicular, Brenner")
+    ax.plot(g, wall.perpendicular_ratio(h, a, "bevan_prieve"), "m--", label="perpendicular, Bevan-Prieve")
+    for hm in heights:
+        ax.axvline((hm - a) * 1e6, color="0.5", lw=0.8)
+    if ratio is not None:
+        ax.axhline(ratio, color="0.5", lw=0.8)
+    ax.set_xscale("log")
+    ax.set_xlabel("gap h - a between particle surface and wall (um); h = centre height")
+    ax.set_ylabel("D / D0")
+    ax.set_ylim(0, 1.02)
+    ax.set_title(f"hindered diffusion near a wall, radius a = {a * 1e9:.4g} nm")
+    ax.legend(fontsize=8, loc="upper left")
+    fig.tight_layout()
+    with atomic_output(path, None) as tmp:
+        fig.savefig(tmp, format="png", dpi=120)
+    plt.close(fig)
