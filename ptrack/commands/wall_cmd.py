@@ -31,7 +31,7 @@ def add_arguments(parser):
     parser.add_argument("--D0", type=float, metavar="D0",
                         help="bulk diffusion coefficient, m^2/s: with --height also print the hindered D values")
     parser.add_argument("--plot", metavar="PNG",
-                        help="also plot D/D0 against the centre height for every model, marking the result")
+                        help="also plot D/D0 of every model against the gap h - a, marking the result")
     parser.add_argument("--json", metavar="OUT", help="also write the results (SI units) to this JSON file")
 
 
