@@ -266,7 +266,7 @@ def _brenner_series(x):
 def perpendicular_ratio_series_and_derivative_nb(x):
     """Brenner's exact ``D_perp/D0`` and d/dx at ``x = h/a`` summed directly (0, 0 for x <= 1).
 
-    Costs ~2 us per call for gaps above 0.1 a and up to ~50 us near contact;
+    Costs ~1 us per call for gaps above 0.1 a and up to ~20-50 us near contact;
     :func:`perpendicular_ratio_and_derivative_nb` gives the same to 1e-11 in ~20 ns.
     """
     if x <= 1.0:
@@ -310,7 +310,7 @@ def perpendicular_ratio_bp_derivative_nb(x):
 # --------------------------------------------------------------------------
 # Brenner's series as a table: the fast exact-to-1e-10 form for hot loops
 # --------------------------------------------------------------------------
-# Near contact the series needs ~40/alpha terms (about 44 us per call at
+# Near contact the series needs ~40/alpha terms (16-44 us per call at
 # gap/a = 1e-3), too slow for a Brownian-dynamics step. The smooth factor
 # c(u) = D_perp(Brenner) / D_perp(Bevan-Prieve), u = ln(gap/a), lies within
 # 0.71 % of 1 for all gaps; it is tabulated once (at import, ~0.06 s) with its
