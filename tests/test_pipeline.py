@@ -1,0 +1,135 @@
+"""End to end: rendered diffusion movie -> track -> table -> analyze, from Python and the command line."""
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from ptrack.errors import UserError
+from ptrack.msd import estimate_diffusion, stokes_einstein
+from ptrack.pipeline import analyze_movie, default_output, track_movie
+from ptrack.table import make_table, read_table, validate
+
+render = pytest.importorskip("sim.render")
+
+D_TRUE = 0.86e-12
+DT = 0.1
+
+
+@pytest.fixture(scope="module")
+def movie(tmp_path_factory):
+    """12 particles diffusing in 2D in a 140 x 140 px view, 60 frames, 2000 detected photons each."""
+    rng = np.random.default_rng(11)
+    cam = render.Camera(photons=2000 / 0.6)
+    px = render.sample_pixel_size(render.Optics(), cam.pixel_pitch)
+    n, T = 12, 60
+    x0 = rng.uniform(25, 115, n) * px
+    y0 = rng.uniform(25, 115, n) * px
+    steps = rng.normal(0, np.sqrt(2 * D_TRUE * DT), (2, n, T))
+    steps[:, :, 0] = 0
+    x = x0[:, None] + steps[0].cumsum(1)
+    y = y0[:, None] + steps[1].cumsum(1)
+    fr = np.tile(np.arange(T), n)
+    table = make_table(fr, fr * DT, np.repeat(np.arange(n), T), x.ravel(), y.ravel(), np.zeros(n * T),
+                       meta={"frame_interval": DT})
+    d = tmp_path_factory.mktemp("movie")
+    info = render.render_movie(table, d, shape=(140, 140), camera=cam, seed=12, progress=False)
+    truth = pd.read_parquet(info["truth"])
+    return {"path": info["movie"], "truth": truth, "px": px, "cam": cam, "dir": d}
+
+
+def _camera(m):
+    return dict(gain=m["cam"].gain, offset=m["cam"].offset, read_noise=m["cam"].read_noise)
+
+
+def test_track_movie_table_and_links(movie, tmp_path):
+    out = tmp_path / "t.parquet"
+    table, summary = track_movie(movie["path"], out=out, progress=False, **_camera(movie))
+    t = read_table(out)
+    meta = t.attrs["ptrack"]
+    assert meta["pixel_size"] == pytest.approx(movie["px"]) and meta["frame_interval"] == pytest.approx(DT)
+    np.testing.assert_allclose(t["x"], t["x_px"] * movie["px"])
+    assert np.isnan(t["z"]).all() and (t["sigma_x"] > 0).all()
+    assert summary["n_frames"] == 60 and summary["n_tracks"] == t["particle"].nunique()
+    # every localisation sits on a true particle, and links follow one true particle
+    truth = movie["truth"]
+    merged = t.merge(truth[["frame", "particle", "x_px", "y_px"]], on="frame", suffixes=("", "_true"))
+    merged["d"] = np.hypot(merged["x_px"] - merged["x_px_true"], merged["y_px"] - merged["y_px_true"])
+    best = merged.loc[merged.groupby(["frame", "particle"])["d"].idxmin()]
+    assert (best["d"] < 1.0).mean() > 0.95          # the rest: two particles overlapping
+    purity = best.groupby("particle")["particle_true"].agg(lambda s: s.value_counts().iloc[0] / len(s))
+    assert purity.min() > 0.9
+    in_view = truth[(truth["x_px"] > 3) & (truth["x_px"] < 136) & (truth["y_px"] > 3) & (truth["y_px"] < 136)]
+    assert len(t) / len(in_view) > 0.95
+
+
+def test_diffusion_matches_truth_tracks(movie):
+    table, _ = track_movie(movie["path"], progress=False, **_camera(movie))
+    truth = movie["truth"]
+    truth = truth[truth["in_frame"]] if "in_frame" in truth else truth
+    tt = validate(make_table(truth["frame"], truth["t"], truth["particle"], truth["x"], truth["y"],
+                             meta={"frame_interval": DT}))
+    d_ours = estimate_diffusion(table, axes=("xy",), n_boot=0).D["xy"]
+    d_truth = estimate_diffusion(tt, axes=("xy",), n_boot=0).D["xy"]
+    assert d_ours == pytest.approx(d_truth, rel=0.06)
+
+
+def test_analyze_movie_report(movie, tmp_path):
+    rep = tmp_path / "rep"
+    s = analyze_movie(movie["path"], radius=250e-9, viscosity=1e-3, temperature=293.15, report_dir=rep,
+                      height=2e-6, progress=False, n_boot=50, **_camera(movie))
+    assert s["D_stokes_einstein"] == pytest.approx(stokes_einstein(250e-9, 1e-3, 293.15))
+    assert set(s["D"]) == {"x", "y", "xy"} and all(v > 0 for v in s["D_err"].values())
+    assert s["D"]["xy"] == pytest.approx(D_TRUE, rel=0.3)
+    assert s["n_tracks"] >= 10
+    assert 0.6 < s["hindered"]["ratio_parallel"] < 1.0
+    assert s["hindered"]["D_bulk_xy"] > s["D"]["xy"]
+    for f in ("tracks.png", "msd.png", "D_per_particle.png", "summary.json"):
+        assert (rep / f).stat().st_size > 1000 or f == "summary.json"
+    assert json.loads((rep / "summary.json").read_text())["n_tracks"] == s["n_tracks"]
+    with pytest.raises(UserError, match="radius"):
+        analyze_movie(movie["path"], radius=-1, viscosity=1e-3, temperature=293.15)
+
+
+def test_cli_track_json_and_several_movies_with_dask(movie, tmp_path):
+    import shutil
+
+    cam = ["--gain", str(movie["cam"].gain), "--offset", str(movie["cam"].offset)]
+    js = tmp_path / "s.json"
+    r = subprocess.run([sys.executable, "-m", "ptrack", "track", str(movie["path"]), "--out", str(tmp_path / "one.parquet"),
+                        "--json", str(js)] + cam, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    s = json.loads(js.read_text())
+    assert {"n_frames", "n_localisations", "n_tracks", "wall_time_s", "frames_per_s"} <= set(s)
+    a, b = tmp_path / "a.tif", tmp_path / "b.tif"
+    shutil.copy(movie["path"], a)
+    shutil.copy(movie["path"], b)
+    outdir = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "ptrack", "track", str(a), str(b), "--out", str(outdir), "--workers", "1",
+                        "--json", str(js)] + cam, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    ta, tb = read_table(default_output(a, outdir)), read_table(default_output(b, outdir))
+    pd.testing.assert_frame_equal(ta, tb)
+    assert json.loads(js.read_text())["n_frames"] == 120
+
+
+def test_cli_analyze_and_missing_calibration(movie, tmp_path):
+    import tifffile
+
+    with tifffile.TiffFile(movie["path"]) as tf:
+        frames = tf.asarray()
+    bare = tmp_path / "bare.tif"
+    tifffile.imwrite(bare, frames)                          # no pixel size, no frame interval
+    r = subprocess.run([sys.executable, "-m", "ptrack", "analyze", str(bare), "--radius", "250e-9", "--viscosity", "1e-3",
+                        "--temperature", "293.15"], capture_output=True, text=True)
+    assert r.returncode == 2 and "--pixel-size" in r.stderr
+    rep = tmp_path / "rep"
+    r = subprocess.run([sys.executable, "-m", "ptrack", "analyze", str(bare), "--pixel-size", str(movie["px"]),
+                        "--frame-interval", "0.1", "--radius", "250e-9", "--viscosity", "1e-3", "--temperature", "293.15",
+                        "--report", str(rep), "--json", str(tmp_path / "a.json")], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert "um^2/s" in r.stdout
+    s = json.loads((tmp_path / "a.json").read_text())
+    assert {"D", "D_err", "D_stokes_einstein", "n_tracks"} <= set(s)
