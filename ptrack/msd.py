@@ -862,9 +862,15 @@ def optimal_lags(eps: float, lengths, weights=None, max_lags: int = 100) -> tupl
     lengths = np.asarray(lengths, dtype=int)
     weights = np.ones(len(lengths)) if weights is None else np.asarray(weights, dtype=float)
     Pmax = int(max(2, min(max_lags, lengths.max())))
-    rv = _predicted_rel_var(lengths, weights, eps, Pmax)
-    i = int(np.argmin(rv))
-    return i + 2, float(rv[i])
+    # search a window well beyond Michalet's estimate 2 + 2.3 eps^0.52, widened while the
+    # minimum sits at its edge (the O(P^3) covariance makes a full search costly)
+    cap = int(min(Pmax, 8 + 4 * math.sqrt(max(eps, 0.0))))
+    while True:
+        rv = _predicted_rel_var(lengths, weights, eps, max(cap, 2))
+        i = int(np.argmin(rv))
+        if i + 2 < cap or cap >= Pmax:
+            return i + 2, float(rv[i])
+        cap = min(Pmax, 2 * cap)
 
 
 def _ols_fit(msd, P):
