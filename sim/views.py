@@ -31,12 +31,19 @@ def _draw(ax, pos, radius, cn, vmax, box=None, title=None):
     x, y, z = pos[:, 0], pos[:, 1], pos[:, 2]
     # marker size ~ radius in axis units (approximate; matplotlib sizes are in points^2)
     span = max(np.ptp(x) if len(x) else 1.0, np.ptp(y) if len(y) else 1.0, 1e-12)
-    s = (radius / span * 260.0) ** 2
+    s = (radius / span * 210.0) ** 2
     sc = ax.scatter(x, y, z, c=cn, cmap="viridis", vmin=0, vmax=vmax, s=s, depthshade=True, edgecolors="none")
     if box is not None:
         ax.set_xlim(0, box[0])
         ax.set_ylim(0, box[1])
-    ax.set_zlim(0, max(float((z + radius).max()) if len(z) else 1.0, 1e-12))
+    ztop = max(float((z + radius).max()) if len(z) else 1.0, 1e-12)
+    ax.set_zlim(0, ztop)
+    xs = box[0] if box is not None else max(np.ptp(x), 1e-12)
+    ys = box[1] if box is not None else max(np.ptp(y), 1e-12)
+    try:
+        ax.set_box_aspect((xs, ys, min(ztop, 2 * max(xs, ys))))
+    except Exception:  # older matplotlib
+        pass
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_zlabel("z (m)")
