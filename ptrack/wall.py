@@ -75,7 +75,6 @@ import math
 import numpy as np
 from numba import njit
 
-from .constants import BOLTZMANN
 from .errors import UserError
 
 __all__ = [
@@ -85,7 +84,7 @@ __all__ = [
     "perpendicular_ratio_derivative",
     "height_from_ratio",
     "hindered_D",
-    "stokes_einstein",
+    "unhindered_D",
     "parallel_ratio_nb",
     "parallel_ratio_derivative_nb",
     "perpendicular_ratio_nb",
@@ -695,22 +694,25 @@ def height_from_ratio(ratio, a, direction: str = "parallel", method: str | None 
     return h if np.ndim(h) else float(h)
 
 
-def stokes_einstein(radius, temperature, viscosity, boltzmann: float = BOLTZMANN):
-    """Stokes-Einstein bulk diffusion coefficient ``kB T / (6 pi mu a)``, m^2/s.
+def unhindered_D(D, h, a, direction: str = "parallel", method: str | None = None):
+    """Bulk diffusion coefficient from one measured at centre height ``h``: ``D / ratio(h/a)``, m^2/s.
+
+    The inverse of :func:`hindered_D`: corrects a diffusion coefficient
+    measured near the wall (e.g. D_x, D_y of particles at a known height) to
+    the value far from it, for comparison with Stokes-Einstein.
 
     Parameters
     ----------
-    radius : float or array_like
+    D : float or array_like
+        Measured diffusion coefficient, m^2/s.
+    h : float or array_like
+        Centre height above the wall, m.
+    a : float or array_like
         Particle radius, m.
-    temperature : float
-        Absolute temperature, K.
-    viscosity : float
-        Dynamic viscosity of the fluid, Pa s.
-    boltzmann : float
-        Boltzmann constant, J/K (the seed uses the rounded 1.3806e-23).
+    direction, method : as in :func:`hindered_D`.
     """
-    radius = _as_float_array("radius", radius)
-    if np.any(radius <= 0) or temperature <= 0 or viscosity <= 0:
-        raise UserError("radius, temperature and viscosity must be positive", "give them in m, K and Pa s")
-    out = boltzmann * temperature / (6.0 * math.pi * viscosity * radius)
+    D = _as_float_array("D", D)
+    code = _code(direction, method)
+    ratio = _apply(_map_ratio, _reduced_height(h, a), code)
+    out = D / ratio
     return out if np.ndim(out) else float(out)
