@@ -527,6 +527,14 @@ def _reduced_height(h, a):
     return x
 
 
+def _check_broadcast(name, arr, ratio):
+    try:
+        np.broadcast_shapes(np.shape(arr), np.shape(ratio))
+    except ValueError:
+        raise UserError(f"{name} (shape {np.shape(arr)}) does not broadcast against the heights "
+                        f"(shape {np.shape(ratio)})", f"give one {name} or one per height")
+
+
 def _apply(kernel, x, code):
     flat = np.ascontiguousarray(x, dtype=np.float64).ravel()
     out = np.empty_like(flat)
@@ -620,6 +628,7 @@ def hindered_D(D0, h, a, direction: str = "parallel", method: str | None = None)
         raise UserError("D0 must be non-negative", "give D0 in m^2/s")
     code = _code(direction, method)
     ratio = _apply(_map_ratio, _reduced_height(h, a), code)
+    _check_broadcast("D0", D0, ratio)
     out = D0 * ratio
     return out if np.ndim(out) else float(out)
 
@@ -654,6 +663,11 @@ def height_from_ratio(ratio, a, direction: str = "parallel", method: str | None 
     a_arr = _as_float_array("radius a", a)
     if np.any(a_arr <= 0):
         raise UserError("radius a must be positive", "give the particle radius in m")
+    try:
+        np.broadcast_shapes(r.shape, a_arr.shape)
+    except ValueError:
+        raise UserError(f"ratio (shape {r.shape}) and radius a (shape {a_arr.shape}) do not broadcast",
+                        "give one radius or one per ratio")
     if np.any((r <= 0) | (r >= 1)):
         bad = float(np.ravel(r)[np.argmax(np.ravel((r <= 0) | (r >= 1)))])
         raise UserError(f"ratio D/D0 = {bad!r} is outside (0, 1)",
@@ -714,5 +728,6 @@ def unhindered_D(D, h, a, direction: str = "parallel", method: str | None = None
     D = _as_float_array("D", D)
     code = _code(direction, method)
     ratio = _apply(_map_ratio, _reduced_height(h, a), code)
+    _check_broadcast("D", D, ratio)
     out = D / ratio
     return out if np.ndim(out) else float(out)

@@ -266,6 +266,12 @@ def test_bad_inputs():
         wall.perpendicular_ratio(2e-6, -1.0)
     with pytest.raises(UserError, match="direction"):
         wall.hindered_D(1e-12, 2e-6, 1e-6, direction="sideways")
+    with pytest.raises(UserError, match="broadcast"):
+        wall.hindered_D(np.ones(3) * 1e-12, np.array([2e-6, 3e-6]), 1e-6)
+    with pytest.raises(UserError, match="broadcast"):
+        wall.height_from_ratio(np.array([0.5, 0.6]), np.array([1e-6, 2e-6, 3e-6]))
+    with pytest.raises(UserError, match="broadcast"):
+        wall.parallel_ratio(np.array([2e-6, 3e-6]), np.array([1e-6, 2e-6, 3e-6]))
 
 
 def test_hindered_D_and_broadcasting():
