@@ -73,6 +73,15 @@ def _arr(name, value, positive=False, nonneg=False):
     return a
 
 
+def _broadcast(**arrays):
+    """np.broadcast_arrays with a UserError naming the shapes on mismatch."""
+    try:
+        return np.broadcast_arrays(*arrays.values())
+    except ValueError:
+        shapes = ", ".join(f"{k} {np.shape(v)}" for k, v in arrays.items())
+        raise UserError(f"array shapes do not broadcast: {shapes}", "give scalars or arrays of one common shape")
+
+
 def _out(x):
     x = np.asarray(x)
     return x if x.ndim else float(x)
@@ -203,6 +212,7 @@ def colloid_charge(zeta, radius, debye, eps_r, henry: str = "exact"):
     R = _arr("radius", radius, positive=True)
     lam = _arr("debye", debye, positive=True)
     eps_r = _arr("eps_r", eps_r, positive=True)
+    zeta, R, lam, eps_r = _broadcast(zeta=zeta, radius=R, debye=lam, eps_r=eps_r)
     return _out(4.0 * math.pi * eps_r * VACUUM_PERMITTIVITY * zeta * R * _f(R / lam, henry))
 
 
@@ -230,6 +240,7 @@ def henry_velocity(field, zeta, radius, debye, eps_r, viscosity, henry: str = "e
     lam = _arr("debye", debye, positive=True)
     eps_r = _arr("eps_r", eps_r, positive=True)
     mu = _arr("viscosity", viscosity, positive=True)
+    E, zeta, R, lam, eps_r, mu = _broadcast(field=E, zeta=zeta, radius=R, debye=lam, eps_r=eps_r, viscosity=mu)
     return _out(2.0 * eps_r * VACUUM_PERMITTIVITY * zeta * E * _f(R / lam, henry) / (3.0 * mu))
 
 
@@ -251,6 +262,7 @@ def peclet_number(field, zeta, radius, debye, eps_r, temperature, henry: str = "
     lam = _arr("debye", debye, positive=True)
     eps_r = _arr("eps_r", eps_r, positive=True)
     T = _arr("temperature", temperature, positive=True)
+    E, zeta, R, lam, eps_r, T = _broadcast(field=E, zeta=zeta, radius=R, debye=lam, eps_r=eps_r, temperature=T)
     return _out(4.0 * math.pi * R ** 2 * np.abs(E * zeta) * eps_r * VACUUM_PERMITTIVITY * _f(R / lam, henry)
                 / (BOLTZMANN * T))
 
@@ -267,6 +279,7 @@ def reynolds_number(velocity, radius, fluid_density, viscosity):
     R = _arr("radius", radius, positive=True)
     rho = _arr("fluid_density", fluid_density, positive=True)
     mu = _arr("viscosity", viscosity, positive=True)
+    v, R, rho, mu = _broadcast(velocity=v, radius=R, fluid_density=rho, viscosity=mu)
     return _out(rho * np.abs(v) * 2.0 * R / mu)
 
 
@@ -375,9 +388,9 @@ def drag_force(speed, radius, fluid_density, viscosity):
     speed : m/s (>= 0, relative to the fluid); radius : m; fluid_density : kg/m^3;
     viscosity : Pa s. All broadcast together.
     """
-    arrs = np.broadcast_arrays(_arr("speed", speed, nonneg=True), _arr("radius", radius, positive=True),
-                               _arr("fluid_density", fluid_density, positive=True),
-                               _arr("viscosity", viscosity, positive=True))
+    arrs = _broadcast(speed=_arr("speed", speed, nonneg=True), radius=_arr("radius", radius, positive=True),
+                      fluid_density=_arr("fluid_density", fluid_density, positive=True),
+                      viscosity=_arr("viscosity", viscosity, positive=True))
     shape = arrs[0].shape
     flat = [np.ascontiguousarray(a, dtype=np.float64).ravel() for a in arrs]
     out = np.empty(flat[0].size)
@@ -486,9 +499,9 @@ def steady_state_velocity(force, radius, fluid_density, viscosity, rtol: float =
     UserError
         If the iteration has not converged to ``rtol`` after ``max_iter`` steps.
     """
-    F, R, rho, mu = np.broadcast_arrays(_arr("force", force), _arr("radius", radius, positive=True),
-                                        _arr("fluid_density", fluid_density, positive=True),
-                                        _arr("viscosity", viscosity, positive=True))
+    F, R, rho, mu = _broadcast(force=_arr("force", force), radius=_arr("radius", radius, positive=True),
+                               fluid_density=_arr("fluid_density", fluid_density, positive=True),
+                               viscosity=_arr("viscosity", viscosity, positive=True))
     if not (0 < rtol < 1):
         raise UserError(f"rtol = {rtol!r} must be in (0, 1)", "use e.g. 1e-12")
     shape = F.shape

@@ -198,3 +198,10 @@ def test_steady_state_nonconvergence_is_an_error():
 
 def test_buoyant_weight():
     assert ek.buoyant_weight(1e-6, 2000.0, 1000.0) == pytest.approx(1000 * 4 / 3 * math.pi * 1e-18 * 9.80665)
+
+
+def test_shape_mismatch_is_a_user_error():
+    with pytest.raises(UserError, match="broadcast"):
+        ek.colloid_charge(-0.05, np.array([1e-7, 2e-7]), np.array([1e-8, 2e-8, 3e-8]), 80.0)
+    with pytest.raises(UserError, match="broadcast"):
+        ek.steady_state_velocity(np.ones(3), np.ones(2) * 1e-6, 1000.0, 1e-3)
