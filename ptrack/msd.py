@@ -379,9 +379,9 @@ def _prepare(df: pd.DataFrame, components, min_rows: int = 2) -> _Tracks:
         df = df.iloc[order]
         part = part[order]
         frame = frame[order]
-    dt = frame_interval(df)
     if len(part) == 0:
         raise UserError("the trajectories table is empty", "track some particles first")
+    dt = frame_interval(df)
     starts = np.flatnonzero(np.r_[True, part[1:] != part[:-1]])
     ends = np.r_[starts[1:], len(part)]
     n_rows = ends - starts
@@ -513,11 +513,11 @@ def subtract_drift(df: pd.DataFrame, drift_table: pd.DataFrame | None = None, ax
         drift_table = drift(df, axes=axes)
     comps = [c for c in ("x", "y", "z") if c in drift_table.columns]
     out = df.copy()
-    s = drift_table.set_index("frame")
-    fr = df["frame"].to_numpy()
+    fd = drift_table["frame"].to_numpy(dtype=float)
+    fr = df["frame"].to_numpy(dtype=float)
     for c in comps:
-        m = s[c].reindex(fr).to_numpy()
-        m = np.where(np.isfinite(m), m, 0.0)
+        # frames outside the drift table take its first/last value
+        m = np.interp(fr, fd, drift_table[c].to_numpy(dtype=float))
         out[c] = df[c].to_numpy(dtype=float) - m
     out.attrs.update(df.attrs)
     return out
@@ -1205,7 +1205,7 @@ def powerlaw_flags(df: pd.DataFrame, axes="xy", level: float = 0.01, min_frames:
         ``particle``, ``n_frames``, ``alpha``, ``A`` (m^2/s^alpha),
         ``alpha_lo``, ``alpha_hi``, ``flagged`` (bool), ``reason`` (str).
     """
-    (axis,) = _parse_axes([axes] if isinstance(axes, str) and "," not in axes else axes)[:1]
+    axis = _parse_axes(axes)[0]
     if not (0 < level < 1):
         raise UserError(f"level = {level!r} outside (0, 1)", "give a false-positive rate such as 0.01")
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
