@@ -68,7 +68,10 @@ def test_flux_conserved_and_peak_where_truth_says():
     assert (iy, ix) == (38, 40)
 
 
-def _moments(img):
+def _moments(img, level=0.0):
+    """Centroid and rms widths (px); ``level``: fraction of the peak subtracted (clipped) first,
+    to measure the core of the image without the far Airy tails."""
+    img = np.clip(img - level * img.max(), 0, None)
     yy, xx = np.indices(img.shape)
     w = img / img.sum()
     mx, my = (w * xx).sum(), (w * yy).sum()
@@ -81,15 +84,15 @@ def test_astigmatism_swaps_x_and_y_widths_across_focus():
     dz = 1.0e-6
     above = next(expected_frames(one_particle(80, 80, z=dz), (160, 160), o, cam))
     below = next(expected_frames(one_particle(80, 80, z=-dz), (160, 160), o, cam))
-    _, _, sxa, sya = _moments(above)
-    _, _, sxb, syb = _moments(below)
+    _, _, sxa, sya = _moments(above, 0.05)
+    _, _, sxb, syb = _moments(below, 0.05)
     # elongated along different axes on the two sides of focus
     assert max(sxa, sya) > 1.3 * min(sxa, sya) and (sxa - sya) * (sxb - syb) < 0
     assert sxa == pytest.approx(syb, rel=0.02) and sya == pytest.approx(sxb, rel=0.02)  # mirror images
     # without astigmatism the defocused image is round and the same on both sides
     o0 = Optics()
     a0 = next(expected_frames(one_particle(80, 80, z=dz), (160, 160), o0, cam))
-    _, _, sx0, sy0 = _moments(a0)
+    _, _, sx0, sy0 = _moments(a0, 0.05)
     assert sx0 == pytest.approx(sy0, rel=1e-6)
 
 
@@ -102,6 +105,25 @@ def test_defocus_widens_the_image_by_the_geometric_cone():
     a = 6e-6 * o.half_angle_tan / PX
     _, _, sx, sy = _moments(img)
     assert sx == pytest.approx(a / 2, rel=0.15) and sy == pytest.approx(sx, rel=1e-6)
+
+
+def test_far_defocused_particle_has_its_own_patch_and_keeps_flux():
+    cam = Camera(photons=1e4, background=0.0)
+    f = np.zeros(2, int)
+    both = make_table(f, f * 0.1, [0, 1], [60 * PX, 200 * PX], [60 * PX, 200 * PX], [0.0, 12e-6],
+                      meta={"frame_interval": 0.1})
+    img = next(expected_frames(both, (400, 400), None, cam))
+    assert img.sum() == pytest.approx(2e4, rel=1e-6)
+    alone = next(expected_frames(both.iloc[:1], (400, 400), None, cam))
+    win = (slice(45, 76), slice(45, 76))  # outside the far particle's patch
+    np.testing.assert_allclose(img[win], alone[win], rtol=1e-6, atol=1e-9)
+    # the far particle is a wide faint disk of radius ~ 12 um tan(theta)
+    far = img - alone
+    r = 12e-6 * Optics().half_angle_tan / PX
+    yy, xx = np.indices(far.shape)
+    inside = np.hypot(yy - 200, xx - 200) < 0.8 * r
+    assert far[inside].mean() == pytest.approx(1e4 / (np.pi * r * r), rel=0.3)
+    assert far.max() < 0.01 * alone.max()
 
 
 def test_particle_size_blurs_and_keeps_flux():

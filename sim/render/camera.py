@@ -106,11 +106,12 @@ def _poisson_cdf_table(mean: float) -> np.ndarray:
     """CDF of Poisson(mean) up to where it reaches 1 in float64."""
     if mean <= 0:
         return np.ones(1)
+    from scipy.special import gammaln
+
     kmax = int(mean + 12.0 * math.sqrt(mean) + 30)
     k = np.arange(kmax + 1)
-    from scipy.stats import poisson as _p
-
-    cdf = _p.cdf(k, mean)
+    cdf = np.cumsum(np.exp(k * math.log(mean) - mean - gammaln(k + 1.0)))
+    cdf = np.minimum(cdf / cdf[-1], 1.0)  # the mass beyond kmax is < 1e-30
     cdf[-1] = 1.0
     return cdf
 

@@ -18,8 +18,9 @@ truth and parameters, small enough to commit:
     ``calib_z.csv``) over +-3 um in 0.1 um steps.
 ``epd_brightfield``
     Brightfield (dark particles on a bright field), 0.8 um polystyrene
-    particles drifting down to the substrate at a Henry velocity
-    ``v = eps eps0 zeta E f(kappa a) / mu`` plus Brownian motion, sticking on
+    particles drifting down to the substrate at the Henry velocity
+    ``v = 2 eps eps0 zeta E f(kappa a) / (3 mu)`` (exact Henry f, from
+    :mod:`sim.electrokinetics`) plus Brownian motion, sticking on
     contact (z = R); 30 fps as in the seed's EPD observations; the focal plane
     is on the substrate so particles come into focus as they deposit.
 """
@@ -34,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ptrack.constants import BOLTZMANN, VACUUM_PERMITTIVITY
+from ptrack.constants import BOLTZMANN
 from ptrack.table import make_table
 
 from .calibration import render_calibration
@@ -164,18 +165,15 @@ def make_diffusion3d(out: Path, seed: int = 20202) -> dict:
     return paths
 
 
-def henry_f_ohshima(ka: float) -> float:
-    """Ohshima's (1994) closed-form approximation to Henry's function f(kappa a), 1 ... 3/2."""
-    return 1.0 + 1.0 / (2.0 * (1.0 + 2.5 / (ka * (1.0 + 2.0 * math.exp(-ka)))) ** 3)
-
-
 def make_epd_brightfield(out: Path, seed: int = 20203) -> dict:
     R = 0.4e-6                     # 0.8 um polystyrene, seed chapter 4
     zeta = -0.040                  # V
     debye = 100e-9                 # m, dilute aqueous suspension
-    E = 150.0                      # V/m, towards the substrate (weak field: slow enough to follow)
-    f = henry_f_ohshima(R / debye)
-    v = EPS_WATER * VACUUM_PERMITTIVITY * abs(zeta) * E * f / MU_WATER   # m/s, magnitude of the Henry velocity
+    E = 250.0                      # V/m, towards the substrate (weak field: slow enough to follow)
+    from sim.electrokinetics import henry_function, henry_velocity
+
+    f = float(henry_function(R / debye))
+    v = abs(float(henry_velocity(E, zeta, R, debye, EPS_WATER, MU_WATER)))  # m/s, 2 eps eps0 |zeta| E f / (3 mu)
     D = stokes_einstein(R)
     optics = Optics()
     camera = Camera(photons=12000.0, background=800.0)
@@ -207,7 +205,8 @@ def make_epd_brightfield(out: Path, seed: int = 20203) -> dict:
     table = _table_from(pos, dt, meta, R)
     truth_vz = -v
     extra = {"dataset": "epd_brightfield", "radius": R, "zeta": zeta, "debye_length": debye, "field": E,
-             "henry_f": f, "henry_f_formula": "Ohshima 1994 approximation", "v_henry": v, "vz_drift": truth_vz,
+             "henry_f": f, "henry_f_formula": "exact (sim.electrokinetics.henry_function)", "v_henry": v,
+             "vz_drift": truth_vz,
              "D_true": D, "walk_seed": seed, "deposit": "particles stick at z = R (contact with the substrate at z = 0)",
              "focal_plane_note": "focal plane on the particles' centres at contact (z = R)"}
     paths = render_movie(table, out, (H, W), optics, camera, focal_plane=R, brightfield=True, seed=seed + 1,

@@ -44,6 +44,13 @@ __all__ = ["render_frames", "expected_frames", "render_movie", "frame_interval_o
 _CHUNK_BYTES = 48e6
 
 
+def _fast_even(n: int) -> int:
+    n = sfft.next_fast_len(max(int(n), 2), real=True)
+    while n % 2:
+        n = sfft.next_fast_len(n + 1, real=True)
+    return n
+
+
 @njit(cache=True)
 def _add_patches(frame, patches, iy0, ix0, sign):
     """Add ``sign * patches[k]`` to ``frame`` with patch pixel (0, 0) at frame (iy0[k], ix0[k]); clipped at the edges."""
@@ -235,18 +242,39 @@ class _Scene:
             self.blur_px = 0.0
             self.blur_z = 0.0
 
-        if len(table):
-            zmin = float(self.defocus.min()) - self.blur_z
-            zmax = float(self.defocus.max()) + self.blur_z
-            rmax = float(self.radius.max())
-        else:
-            zmin = zmax = 0.0
-            rmax = 0.0
-        n = patch_size(self.optics, self.pixel, max(abs(zmin), abs(zmax)), rmax)
-        if self.blur_px > 0:
-            n = patch_size(self.optics, self.pixel, max(abs(zmin), abs(zmax)) + 2 * self.blur_px * self.pixel / max(self.optics.half_angle_tan, 1e-9), rmax)
-        self.stack = build_psf_stack(self.optics, self.pixel, zmin, zmax, rmax, n=n)
-        self.renderer = _Renderer(self.stack)
+        # Patch classes: each row gets the patch its defocus needs (the defocus blur grows
+        # 0.68 um per um at NA 0.75), rounded up a ladder of FFT-friendly sizes ~25 % apart;
+        # one PSF stack per (size, side of focus). A particle far from focus then does not
+        # make every in-focus particle pay for a huge patch.
+        o = self.optics
+        lo_z = self.defocus - self.blur_z
+        hi_z = self.defocus + self.blur_z
+        need = ((np.maximum(np.abs(lo_z), np.abs(hi_z)) + o.line_focus_offset) * o.half_angle_tan
+                + o.psf_margin * o.airy_radius + 2.0 * self.radius) * 2.0 / self.pixel + 2 + 4 * self.blur_px
+        ladder = [patch_size(o, self.pixel, 0.0, 0.0)]
+        top = float(need.max()) if len(need) else 0.0
+        while ladder[-1] < top:
+            ladder.append(_fast_even(int(math.ceil(ladder[-1] * 1.25))))
+        ladder = np.array(ladder)
+        size_idx = np.searchsorted(ladder, need, side="left") if len(need) else np.zeros(0, np.int64)
+        side = (self.defocus >= 0).astype(np.int64)
+        key = size_idx * 2 + side
+        self.row_class = np.empty(len(table), dtype=np.int64)
+        self.renderers: list[_Renderer] = []
+        for ci, k in enumerate(np.unique(key)):
+            sel = key == k
+            self.row_class[sel] = ci
+            n = int(ladder[k // 2])
+            st = build_psf_stack(o, self.pixel, float(lo_z[sel].min()), float(hi_z[sel].max()),
+                                 float(self.radius[sel].max()), n=n)
+            self.renderers.append(_Renderer(st))
+        if not self.renderers:  # empty table: one in-focus class so that frames can still be drawn
+            self.renderers.append(_Renderer(build_psf_stack(o, self.pixel, 0.0, 0.0, 0.0)))
+
+    @property
+    def stack(self) -> PSFStack:
+        """The PSF stack with the largest patch (for reporting)."""
+        return max((r.stack for r in self.renderers), key=lambda st: st.n)
 
     def sub_positions(self, idx):
         if self.substeps <= 0:
@@ -267,22 +295,27 @@ class _Scene:
         H, W = self.shape
         img = np.full((H, W), float(self.camera.background))
         peaks = np.zeros(len(idx))
-        n = self.stack.n
-        c = n // 2
-        # cull particles whose patch misses the frame entirely
-        ix = np.rint(self.x_px[idx]).astype(np.int64)
-        iy = np.rint(self.y_px[idx]).astype(np.int64)
-        keep = (ix + n - c > 0) & (ix - c < W) & (iy + n - c > 0) & (iy - c < H) & (self.photons[idx] > 0)
-        kidx = np.nonzero(keep)[0]
-        per = max(1, int(_CHUNK_BYTES // (n * (n // 2 + 1) * 8 * 3)))
         sign = -1.0 if brightfield else 1.0
-        for s in range(0, len(kidx), per):
-            loc = kidx[s:s + per]
-            rows = idx[loc]
-            pat, y0, x0 = self.renderer.patches(self.x_px[rows], self.y_px[rows], self.defocus[rows],
-                                                self.radius[rows], self.photons[rows], self.sub_positions(rows))
-            peaks[loc] = pat.reshape(len(rows), -1).max(axis=1)
-            _add_patches(img, pat, y0, x0, sign)
+        cls = self.row_class[idx]
+        for ci in np.unique(cls):
+            renderer = self.renderers[ci]
+            n = renderer.n
+            c = n // 2
+            cidx = np.nonzero(cls == ci)[0]
+            rows_c = idx[cidx]
+            # cull particles whose patch misses the frame entirely
+            ix = np.rint(self.x_px[rows_c]).astype(np.int64)
+            iy = np.rint(self.y_px[rows_c]).astype(np.int64)
+            keep = (ix + n - c > 0) & (ix - c < W) & (iy + n - c > 0) & (iy - c < H) & (self.photons[rows_c] > 0)
+            kidx = cidx[keep]
+            per = max(1, int(_CHUNK_BYTES // (n * (n // 2 + 1) * 8 * 3)))
+            for s in range(0, len(kidx), per):
+                loc = kidx[s:s + per]
+                rows = idx[loc]
+                pat, y0, x0 = renderer.patches(self.x_px[rows], self.y_px[rows], self.defocus[rows],
+                                               self.radius[rows], self.photons[rows], self.sub_positions(rows))
+                peaks[loc] = pat.reshape(len(rows), -1).max(axis=1)
+                _add_patches(img, pat, y0, x0, sign)
         if brightfield:
             np.maximum(img, 0.0, out=img)
         return img, peaks
@@ -424,8 +457,8 @@ def render_movie(table: pd.DataFrame, out_dir, shape=(256, 256), optics: Optics 
         "seed": seed if not isinstance(seed, np.random.Generator) else None,
         "optics": scene.optics.to_dict(),
         "camera": scene.camera.to_dict(),
-        "psf_patch_px": scene.stack.n,
-        "psf_z_step_used": scene.stack.dz,
+        "psf_patch_px": sorted({r.n for r in scene.renderers}),
+        "psf_z_step_used": max(r.stack.dz for r in scene.renderers),
         "n_particles": int(tbl["particle"].nunique()),
         "table_meta": metadata(tbl),
         "compression": compression,

@@ -184,7 +184,7 @@ def _amp_grid_factor(optics: Optics, pixel: float, n: int, min_pupil_samples: fl
     return max(1, int(math.ceil(min_pupil_samples / per)))
 
 
-def otf_planes(optics: Optics, pixel: float, n: int, defocus) -> np.ndarray:
+def otf_planes(optics: Optics, pixel: float, n: int, defocus, dtype=np.complex128) -> np.ndarray:
     """Pixel-integrated optical transfer functions for the given defocus values.
 
     Parameters
@@ -197,9 +197,12 @@ def otf_planes(optics: Optics, pixel: float, n: int, defocus) -> np.ndarray:
     defocus : array_like
         Particle height above the focal plane, m, one per plane.
 
+    dtype : numpy dtype
+        complex128 (default) or complex64 (half the memory of a large stack).
+
     Returns
     -------
-    ndarray, complex128, shape (len(defocus), n, n // 2 + 1)
+    ndarray, complex, shape (len(defocus), n, n // 2 + 1)
         ``rfft2`` of the pixel-integrated intensity PSF centred on pixel (0, 0)
         (wrapped), normalised so that the DC term (total flux) is 1.
         The intensity is computed on an m-times larger grid (fine pupil
@@ -217,7 +220,7 @@ def otf_planes(optics: Optics, pixel: float, n: int, defocus) -> np.ndarray:
     fpx = np.fft.fftfreq(n)  # cycles/pixel
     rpx = np.fft.rfftfreq(n)
     pix = np.sinc(fpx)[:, None] * np.sinc(rpx)[None, :]
-    out = np.empty((len(defocus), n, n // 2 + 1), dtype=np.complex128)
+    out = np.empty((len(defocus), n, n // 2 + 1), dtype=dtype)
     pupil = np.zeros((big, big), dtype=np.complex128)
     for i, dz in enumerate(defocus):
         pupil[sel] = amp_mask * np.exp(1j * (kz_sel * dz + base_phase))
@@ -296,7 +299,7 @@ def build_psf_stack(optics: Optics, pixel: float, zmin: float, zmax: float, max_
         nz = max(2, int(max_bytes // plane_bytes))
         step = span / (nz - 1) if span > 0 else step
     zs = zmin + step * np.arange(nz)
-    otf = otf_planes(optics, pixel, n, zs).astype(np.complex64)
+    otf = otf_planes(optics, pixel, n, zs, dtype=np.complex64)
     return PSFStack(z0=float(zmin), dz=step, otf=otf, pixel=pixel, n=n)
 
 
