@@ -231,6 +231,42 @@ def _msd_sums_ragged(vals, off, max_lag):
 
 
 @njit(cache=True)
+def _msd_sums_multi(vals, off, max_lag):
+    """Per-component sums of squared displacements (n_p, max_lag, k) and counts (n_p, max_lag).
+
+    A displacement counts where every component is finite at both ends.
+    """
+    n_p = off.shape[0] - 1
+    k_c = vals.shape[0]
+    sums = np.zeros((n_p, max_lag, k_c))
+    cnts = np.zeros((n_p, max_lag))
+    acc = np.zeros(k_c)
+    for p in range(n_p):
+        a = off[p]
+        b = off[p + 1]
+        span = b - a
+        for lag in range(1, min(max_lag, span - 1) + 1):
+            acc[:] = 0.0
+            c = 0.0
+            for i in range(a, b - lag):
+                ok = True
+                for k in range(k_c):
+                    d = vals[k, i + lag] - vals[k, i]
+                    if d != d:
+                        ok = False
+                        break
+                if ok:
+                    for k in range(k_c):
+                        d = vals[k, i + lag] - vals[k, i]
+                        acc[k] += d * d
+                    c += 1.0
+            for k in range(k_c):
+                sums[p, lag - 1, k] = acc[k]
+            cnts[p, lag - 1] = c
+    return sums, cnts
+
+
+@njit(cache=True)
 def _cve_sums_ragged(vals, off):
     """Per particle and component: sum dx^2, n(dx), sum dx_n dx_n+1, n(pairs)."""
     n_p = off.shape[0] - 1
@@ -572,6 +608,17 @@ def _default_max_lag(tr: _Tracks, max_lag):
 
 
 def _msd_sums(tr: _Tracks, axes, max_lag):
+    """axis -> (sums (n_p, L), counts (n_p, L)).
+
+    One pass over all components when they share their missing values (the
+    usual case: a row has x and y, and z if any); else one pass per axis.
+    """
+    comps = _components(axes)
+    nan0 = np.isnan(tr.comps[comps[0]])
+    if all(np.array_equal(nan0, np.isnan(tr.comps[c])) for c in comps[1:]):
+        sums, cnts = _msd_sums_multi(tr.stack(comps), tr.off, int(max_lag))
+        ci = {c: i for i, c in enumerate(comps)}
+        return {a: (sums[:, :, [ci[c] for c in AXES[a]]].sum(axis=2), cnts) for a in axes}
     res = {}
     for a in axes:
         vals = tr.stack(AXES[a])
