@@ -166,14 +166,70 @@ def ou_exact_kernel(pos, vel, radius, mass, gamma, fconst, vf, kT, dt, steps, nf
                 out_vel[f, i, k] = vel[i, k]
 
 
+WALL_TABLE_POINTS = 20001
+WALL_TABLE_GAP_RANGE = (1e-8, 99.0)   # gap (h - a) / a covered by the tables; beyond: direct evaluation
+
+
+@njit(cache=True)
+def _fill_wall_tables(u0, du, par, perp, dperp):
+    for j in range(par.shape[0]):
+        x = 1.0 + math.exp(u0 + j * du)
+        par[j] = parallel_ratio_nb(x)
+        perp[j] = perpendicular_ratio_nb(x)
+        dperp[j] = perpendicular_ratio_derivative_nb(x)
+
+
+_WALL_TABLES = None
+
+
+def wall_tables():
+    """Tabulated near-wall mobility ratios for the BD kernel: (u0, du, par, perp, dperp).
+
+    The ratios of :mod:`ptrack.wall` (Brenner's series for the perpendicular
+    ratio needs many terms near contact) are tabulated once on a uniform grid
+    in u = ln((h - a) / a) over gaps 1e-8 ... 99 radii (20001 points, linear
+    interpolation: relative error ~1e-7) and evaluated directly beyond.
+    """
+    global _WALL_TABLES
+    if _WALL_TABLES is None:
+        lo, hi = WALL_TABLE_GAP_RANGE
+        u0 = math.log(lo)
+        du = (math.log(hi) - u0) / (WALL_TABLE_POINTS - 1)
+        par = np.empty(WALL_TABLE_POINTS)
+        perp = np.empty(WALL_TABLE_POINTS)
+        dperp = np.empty(WALL_TABLE_POINTS)
+        _fill_wall_tables(u0, du, par, perp, dperp)
+        _WALL_TABLES = (u0, du, par, perp, dperp)
+    return _WALL_TABLES
+
+
+@njit(cache=True, nogil=True)
+def _wall_lookup(x, u0, du, par, perp, dperp):
+    """(M_par/M0, M_perp/M0, d(M_perp/M0)/dx) at x = h / a from the tables."""
+    g = x - 1.0
+    if g <= 0.0:
+        return par[0], perp[0], dperp[0]
+    u = math.log(g)
+    t = (u - u0) / du
+    last = par.shape[0] - 1
+    if t >= last:
+        return parallel_ratio_nb(x), perpendicular_ratio_nb(x), perpendicular_ratio_derivative_nb(x)
+    if t <= 0.0:
+        return par[0], perp[0], dperp[0]
+    j = int(t)
+    w = t - j
+    return (par[j] + w * (par[j + 1] - par[j]), perp[j] + w * (perp[j + 1] - perp[j]),
+            dperp[j] + w * (dperp[j + 1] - dperp[j]))
+
+
 @njit(cache=True, nogil=True)
 def overdamped_kernel(pos, vel, radius, gamma, fconst, vf, kT, dt, steps, nframes, box, modes,
-                      out_pos, out_vel, noise, hindered):
+                      out_pos, out_vel, noise, hindered, u0, du, tpar, tperp, tdperp):
     """Euler-Maruyama Brownian dynamics; ``vel`` receives the deterministic drift velocity.
 
     With ``hindered`` the mobility parallel / perpendicular to the z = 0 wall
-    is scaled by the ratios of :mod:`ptrack.wall` at h / R (h = centre height)
-    and the drift kB T dM_perp/dz dt is added.
+    is scaled by the ratios of :mod:`ptrack.wall` at h / R (h = centre height,
+    tabulated by :func:`wall_tables`) and the drift kB T dM_perp/dz dt is added.
     """
     n = pos.shape[0]
     for i in range(n):
@@ -185,10 +241,10 @@ def overdamped_kernel(pos, vel, radius, gamma, fconst, vf, kT, dt, steps, nframe
                 mperp = m0
                 drift = 0.0
                 if hindered:
-                    h = pos[i, 2] / a
-                    mpar = m0 * parallel_ratio_nb(h)
-                    mperp = m0 * perpendicular_ratio_nb(h)
-                    drift = kT * m0 * perpendicular_ratio_derivative_nb(h) / a
+                    rpar, rperp, rd = _wall_lookup(pos[i, 2] / a, u0, du, tpar, tperp, tdperp)
+                    mpar = m0 * rpar
+                    mperp = m0 * rperp
+                    drift = kT * m0 * rd / a
                 for k in range(3):
                     mk = mperp if k == 2 else mpar
                     v = vf[k] + mk * fconst[i, k]

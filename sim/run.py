@@ -33,7 +33,7 @@ from ptrack.table import TrajectoryWriter
 from sim.forces.brownian import seed_rng
 from sim.forces.drag import max_reynolds
 from sim.integrate import (IntegratorChoice, _reynolds_at_balance, choose_integrator, ou_exact_kernel,
-                           overdamped_kernel, trapezoidal_kernel)
+                           overdamped_kernel, trapezoidal_kernel, wall_tables)
 from sim.scene import Scene, State, build_state, constant_force
 
 log = logging.getLogger("sim.run")
@@ -100,9 +100,11 @@ class Stepper:
             ou_exact_kernel(st.pos, st.vel, st.radius, st.mass, st.gamma, self.fconst, self.vf, self.kT, c.dt,
                             c.steps_per_output, nframes, self.box, self.modes, out_pos, out_vel, self.noise)
         elif c.kind == "overdamped":
+            hindered = bool(self.scene.integrator.hindered_mobility)
+            tabs = wall_tables() if hindered else (0.0, 1.0, np.zeros(2), np.zeros(2), np.zeros(2))
             overdamped_kernel(st.pos, st.vel, st.radius, st.gamma, self.fconst, self.vf, self.kT, c.dt,
                               c.steps_per_output, nframes, self.box, self.modes, out_pos, out_vel, self.noise,
-                              bool(self.scene.integrator.hindered_mobility))
+                              hindered, *tabs)
         else:
             spec = self.scene.integrator
             # the drag-law branching is skipped while Re stays <= 1; checked once per output interval
