@@ -63,7 +63,7 @@ def run_cases(func, cases: list, scheduler: str | None = None, use_dask: bool = 
                                 "check the address, or leave out --scheduler to use a local cluster")
         else:
             n = workers or os.cpu_count() or 1
-            cluster = LocalCluster(n_workers=1, threads_per_worker=n, processes=False, dashboard_address=None)
+            cluster = LocalCluster(n_workers=1, threads_per_worker=n, processes=False, dashboard_address=":0")
             client = Client(cluster)
         try:
             futures = client.map(func, cases, pure=False)
