@@ -1219,7 +1219,7 @@ def _n_alpha_lags(n_frames):
 
 
 def powerlaw_flags(df: pd.DataFrame, axes="xy", level: float = 0.01, min_frames: int = 12, n_null: int = 1000,
-                   seed=0, motion_blur: float = 1 / 6) -> pd.DataFrame:
+                   seed=0, subtract_drift: bool = False) -> pd.DataFrame:
     """Fit ``MSD = A t^alpha`` per track and flag non-diffusive tracks.
 
     Each track's time-averaged MSD (over lags 1..clip(n/4, 3, 20)), minus the
@@ -1243,8 +1243,9 @@ def powerlaw_flags(df: pd.DataFrame, axes="xy", level: float = 0.01, min_frames:
     n_null : int
         Monte-Carlo tracks per length class.
     seed : int or Generator
-    motion_blur : float
-        Only for the reported ensemble D/sigma (not needed for the flags).
+    subtract_drift : bool
+        Remove the common drift first (as in :func:`estimate_diffusion`);
+        otherwise a drifting stage makes every track look directed.
 
     Returns
     -------
@@ -1259,6 +1260,8 @@ def powerlaw_flags(df: pd.DataFrame, axes="xy", level: float = 0.01, min_frames:
     cc = AXES[axis]
     k = len(cc)
     tr = _prepare(df, cc, min_rows=3)
+    if subtract_drift:
+        tr = _drift_corrected(tr, cc)
     dt = tr.dt
     cs = _cve_sums_ragged(tr.stack(cc), tr.off)
     tot = cs.sum(axis=0)                                   # (k, 4)

@@ -303,3 +303,13 @@ def test_library_rejects_bad_input():
         M.estimate_diffusion(gappy)
     with pytest.raises(UserError):
         M.cve_from_positions(np.array([[0.0, np.nan, 1.0]]), DT)
+
+
+def test_powerlaw_flags_with_common_drift():
+    rng = np.random.default_rng(31)
+    n_p, n_f = 80, 100
+    p = M.brownian_tracks(n_p, n_f, D0, DT, 20e-9, 0.0, n_dims=2, seed=rng)
+    p[..., 0] += 2.0 * math.sqrt(2 * D0 * DT) * np.arange(n_f)[None]      # the whole field drifts
+    df = _table(p[..., 0], p[..., 1])
+    assert M.powerlaw_flags(df, seed=0)["flagged"].mean() > 0.8
+    assert M.powerlaw_flags(df, seed=0, subtract_drift=True)["flagged"].mean() < 0.05

@@ -88,7 +88,8 @@ def run(args) -> int:
                         "give --radius (m) for the Stokes-Einstein value")
 
     flag_axis = "xy" if all(a in ("x", "y", "xy") for a in axes) else "xyz" if any("z" in a for a in axes) else "xy"
-    flags = M.powerlaw_flags(df, axes=flag_axis, level=args.flag_level, seed=args.seed)
+    flags = M.powerlaw_flags(df, axes=flag_axis, level=args.flag_level, seed=args.seed,
+                             subtract_drift=args.subtract_drift)
     flagged = flags[flags["flagged"]]
     used = df
     if args.exclude_flagged and len(flagged):
