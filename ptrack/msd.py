@@ -10,6 +10,7 @@ What is here
   over the ensemble (all particles, all start times), per axis (``x``, ``y``,
   ``z``) and combined (``xy``, ``xz``, ``yz``, ``xyz``). Tracks may have gaps
   (missing frames): a displacement is counted only where both ends exist.
+- :func:`particle_diffusion`: CVE D of each track with its closed-form error.
 - :func:`estimate_diffusion`: D per axis with standard errors, by
 
   * ``"cve"``: the covariance-based estimator of Vestergaard, Blainey and
@@ -1197,6 +1198,62 @@ def estimate_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), estimator: str =
                           motion_blur=R, se_method="bootstrap" if use_boot else "model",
                           drift_corrected=bool(subtract_drift), msd=msd_table, **res)
     return out
+
+
+def particle_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), motion_blur: float = 1 / 6,
+                       subtract_drift: bool = False) -> pd.DataFrame:
+    """CVE diffusion coefficient of each track, with its closed-form error.
+
+    For distributions of D over particles (polydispersity, agglomerates,
+    particles at different heights above a wall, to be corrected one by one).
+
+    Parameters
+    ----------
+    df : DataFrame
+        Trajectories table (gaps allowed; tracks need 3 consecutive frames).
+    axes : sequence of str
+        Any of :data:`AXES`.
+    motion_blur : float
+        R (1/6 full-frame exposure, 0 instantaneous).
+    subtract_drift : bool
+        Remove the common drift first (with the (1 - 1/M) correction).
+
+    Returns
+    -------
+    DataFrame
+        ``particle``, ``n_frames``, and per axis ``D_<axis>`` (m^2/s),
+        ``D_<axis>_err`` (closed form, Vestergaard et al. 2014 eq. 18, at the
+        track's own estimates) and ``sigma_<axis>`` (m, NaN if the estimate of
+        sigma^2 is negative). Tracks without two consecutive displacements
+        get NaN.
+    """
+    axes = _parse_axes(axes)
+    R = float(motion_blur)
+    if not (0.0 <= R <= 0.25):
+        raise UserError(f"motion_blur = {motion_blur!r} outside [0, 1/4]", "use 1/6 for full-frame exposure, 0 for instantaneous")
+    comps = _components(axes)
+    tr = _prepare(df, comps, min_rows=3)
+    if subtract_drift:
+        tr = _drift_corrected(tr, comps)
+    cs = _cve_sums_ragged(tr.stack(comps), tr.off)
+    ci = {c: i for i, c in enumerate(comps)}
+    out = {"particle": tr.particles, "n_frames": tr.n_rows.astype(np.int64)}
+    Dc, vc, sc = {}, {}, {}
+    for c, i in ci.items():
+        S2, N2, S11, N11 = (cs[:, i, j] for j in range(4))
+        D, s2 = _cve_from_sums(S2, N2, S11, N11, tr.dt, R)
+        D = np.where(N11 > 0, D, np.nan)
+        Dc[c], sc[c] = D, s2
+        vc[c] = cve_variance(np.abs(D), np.maximum(s2, 0.0), tr.dt, np.maximum(N2, 1), R)
+    for a in axes:
+        cc = AXES[a]
+        k = len(cc)
+        out[f"D_{a}"] = sum(Dc[c] for c in cc) / k
+        out[f"D_{a}_err"] = np.sqrt(sum(vc[c] for c in cc)) / k
+        s2 = sum(sc[c] for c in cc) / k
+        with np.errstate(invalid="ignore"):
+            out[f"sigma_{a}"] = np.where(s2 >= 0, np.sqrt(np.abs(s2)), np.nan)
+    return pd.DataFrame(out)
 
 
 # ---------------------------------------------------------------------------
