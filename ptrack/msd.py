@@ -673,8 +673,15 @@ def _ensemble_from_sums(sums, axes, dt, L):
         S = s.sum(axis=0)
         C = c.sum(axis=0)
         with np.errstate(invalid="ignore", divide="ignore"):
-            out[f"msd_{a}"] = np.where(C > 0, S / np.maximum(C, 1), np.nan)
+            r = np.where(C > 0, S / np.maximum(C, 1), np.nan)
+            # standard error over whole particles (delta method for the ratio
+            # sum(s_p)/sum(c_p), the closed form of a particle bootstrap)
+            m = (c > 0).sum(axis=0)
+            se = np.sqrt(m / np.maximum(m - 1, 1) * ((s - r * c) ** 2).sum(axis=0)) / C
+            se = np.where(m >= 2, se, np.nan)
+        out[f"msd_{a}"] = r
         out[f"n_{a}"] = C.astype(np.int64)
+        out[f"se_{a}"] = se
     return pd.DataFrame(out)
 
 
@@ -697,7 +704,8 @@ def ensemble_msd(df: pd.DataFrame, axes=("x", "y", "xy"), max_lag=None) -> pd.Da
     -------
     DataFrame
         Columns ``lag`` (frames), ``t`` (s), ``msd_<axis>`` (m^2),
-        ``n_<axis>`` (number of displacements).
+        ``n_<axis>`` (number of displacements), ``se_<axis>`` (m^2, standard
+        error over whole particles; NaN with fewer than 2 particles).
     """
     axes = _parse_axes(axes)
     tr = _prepare(df, _components(axes))
@@ -1456,7 +1464,14 @@ def plot_msd(result, path, title: str | None = None):
         y = msd[col].to_numpy()
         good = np.isfinite(y) & (y > 0)
         color = f"C{i}"
-        ax.loglog(t[good], y[good] * 1e12, "o", ms=3, color=color, label=f"MSD {a}")
+        se = msd[f"se_{a}"].to_numpy() if f"se_{a}" in msd.columns else np.full(len(y), np.nan)
+        if np.isfinite(se[good]).any():
+            ax.errorbar(t[good], y[good] * 1e12, yerr=np.nan_to_num(se[good]) * 1e12, fmt="o", ms=3,
+                        color=color, elinewidth=0.7, label=f"MSD {a} (+- SE)")
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+        else:
+            ax.loglog(t[good], y[good] * 1e12, "o", ms=3, color=color, label=f"MSD {a}")
         if a in fit:
             f = fit[a]
             tt = np.geomspace(t[0], t[-1], 100)

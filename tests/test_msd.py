@@ -327,3 +327,15 @@ def test_particle_diffusion_matches_array_path_and_closed_form():
     # the per-track errors describe the scatter of the per-track D
     assert pdf["D_xy"].std() == pytest.approx(np.sqrt(np.mean(pdf["D_xy_err"] ** 2)), rel=0.15)
     assert pdf["D_xy"].mean() == pytest.approx(D0, rel=0.03)
+
+
+def test_ensemble_msd_standard_error_matches_replicate_scatter():
+    vals, ses = [], []
+    for rep in range(150):
+        p = M.brownian_tracks(20, 60, D0, DT, 20e-9, 0.0, n_dims=2, seed=900 + rep)
+        e = M.ensemble_msd(_table(p[..., 0], p[..., 1]), axes=("xy",), max_lag=10)
+        vals.append(e["msd_xy"].to_numpy())
+        ses.append(e["se_xy"].to_numpy())
+    sd = np.std(vals, axis=0, ddof=1)
+    np.testing.assert_allclose(np.mean(ses, axis=0), sd, rtol=0.2)
+    np.testing.assert_allclose(np.mean(vals, axis=0), 4 * D0 * DT * np.arange(1, 11) + 4 * (20e-9) ** 2, rtol=0.03)
