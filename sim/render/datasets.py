@@ -116,7 +116,8 @@ def _readme(path: Path, name: str, text: str):
     path.write_text(f"Regenerate with: {cmd}   (all datasets: make data)\n{text.strip()}\n")
 
 
-def make_diffusion2d(out: Path, seed: int = 20201) -> dict:
+def diffusion2d_scene(seed: int = 20201) -> dict:
+    """Trajectories and rendering settings of ``diffusion2d`` (no rendering)."""
     R = 250e-9
     D = stokes_einstein(R)
     optics, camera = Optics(), Camera(photons=3000.0, background=15.0)
@@ -128,17 +129,16 @@ def make_diffusion2d(out: Path, seed: int = 20201) -> dict:
                         seed=seed)
     meta = {"pixel_size": px, "frame_interval": dt, "source": "sim.render.datasets diffusion2d",
             "temperature": T_ROOM, "viscosity": MU_WATER, "radius": R, "D_true": D}
-    table = _table_from(pos, dt, meta, R)
     extra = {"dataset": "diffusion2d", "D_true": D, "D_truth_tracks": _d_from_truth(pos, dt), "radius": R,
              "temperature": T_ROOM, "viscosity": MU_WATER, "walk_seed": seed,
-             "walls": "x, y free (particles enter and leave the view; truth column in_frame); z reflects at +-0.4 um", "motion_blur": "none (short exposure)"}
-    paths = render_movie(table, out, (H, W), optics, camera, focal_plane=0.0, seed=seed + 1, compression="zlib",
-                         extra_params=extra)
-    _readme(out / "README.txt", "diffusion2d", __doc__.split("``diffusion2d``")[1].split("``diffusion3d``")[0])
-    return paths
+             "walls": "x, y free (particles enter and leave the view; truth column in_frame); z reflects at +-0.4 um",
+             "motion_blur": "none (short exposure)"}
+    return {"table": _table_from(pos, dt, meta, R), "shape": (H, W), "optics": optics, "camera": camera,
+            "focal_plane": 0.0, "brightfield": False, "seed": seed + 1, "extra": extra}
 
 
-def make_diffusion3d(out: Path, seed: int = 20202) -> dict:
+def diffusion3d_scene(seed: int = 20202) -> dict:
+    """Trajectories and rendering settings of ``diffusion3d`` (no rendering)."""
     R = 250e-9
     D = stokes_einstein(R)
     optics = Optics(astigmatism=0.12e-6)
@@ -152,26 +152,24 @@ def make_diffusion3d(out: Path, seed: int = 20202) -> dict:
                         seed=seed)
     meta = {"pixel_size": px, "frame_interval": dt, "source": "sim.render.datasets diffusion3d",
             "temperature": T_ROOM, "viscosity": MU_WATER, "radius": R, "D_true": D}
-    table = _table_from(pos, dt, meta, R)
+    calib = {"z_min": -3e-6, "z_max": 3e-6, "z_step": 1e-7, "shape": (72, 72), "radius": R,
+             "camera": Camera(photons=20000.0, background=15.0), "seed": seed + 2}
     extra = {"dataset": "diffusion3d", "D_true": D, "D_truth_tracks": _d_from_truth(pos, dt), "radius": R,
              "walk_seed": seed, "walls": "x, y free (particles enter and leave the view; truth column in_frame); z reflects at +-2.5 um",
-             "calibration": {"stack": "calib.tif", "z": "calib_z.csv", "z_min": -3e-6, "z_max": 3e-6, "z_step": 1e-7}}
-    paths = render_movie(table, out, (H, W), optics, camera, focal_plane=0.0, seed=seed + 1, compression="zlib",
-                         extra_params=extra)
-    cal = render_calibration(out, -3e-6, 3e-6, 1e-7, shape=(72, 72), optics=optics, camera=Camera(photons=20000.0, background=15.0),
-                             radius=R, seed=seed + 2, compression="zlib")
-    paths.update(cal)
-    _readme(out / "README.txt", "diffusion3d", __doc__.split("``diffusion3d``")[1].split("``epd_brightfield``")[0])
-    return paths
+             "calibration": {"stack": "calib.tif", "z": "calib_z.csv", "z_min": calib["z_min"], "z_max": calib["z_max"],
+                             "z_step": calib["z_step"], "photons": calib["camera"].photons}}
+    return {"table": _table_from(pos, dt, meta, R), "shape": (H, W), "optics": optics, "camera": camera,
+            "focal_plane": 0.0, "brightfield": False, "seed": seed + 1, "extra": extra, "calibration": calib}
 
 
-def make_epd_brightfield(out: Path, seed: int = 20203) -> dict:
+def epd_brightfield_scene(seed: int = 20203) -> dict:
+    """Trajectories and rendering settings of ``epd_brightfield`` (no rendering)."""
+    from sim.electrokinetics import henry_function, henry_velocity
+
     R = 0.4e-6                     # 0.8 um polystyrene, seed chapter 4
     zeta = -0.040                  # V
     debye = 100e-9                 # m, dilute aqueous suspension
     E = 250.0                      # V/m, towards the substrate (weak field: slow enough to follow)
-    from sim.electrokinetics import henry_function, henry_velocity
-
     f = float(henry_function(R / debye))
     v = abs(float(henry_velocity(E, zeta, R, debye, EPS_WATER, MU_WATER)))  # m/s, 2 eps eps0 |zeta| E f / (3 mu)
     D = stokes_einstein(R)
@@ -202,19 +200,46 @@ def make_epd_brightfield(out: Path, seed: int = 20203) -> dict:
             stuck |= hit
         pos[i] = np.c_[xy, z]
     meta = {"pixel_size": px, "frame_interval": dt, "source": "sim.render.datasets epd_brightfield", "radius": R}
-    table = _table_from(pos, dt, meta, R)
-    truth_vz = -v
     extra = {"dataset": "epd_brightfield", "radius": R, "zeta": zeta, "debye_length": debye, "field": E,
              "henry_f": f, "henry_f_formula": "exact (sim.electrokinetics.henry_function)", "v_henry": v,
-             "vz_drift": truth_vz,
-             "D_true": D, "walk_seed": seed, "deposit": "particles stick at z = R (contact with the substrate at z = 0)",
+             "vz_drift": -v, "D_true": D, "walk_seed": seed,
+             "deposit": "particles stick at z = R (contact with the substrate at z = 0)",
              "focal_plane_note": "focal plane on the particles' centres at contact (z = R)"}
-    paths = render_movie(table, out, (H, W), optics, camera, focal_plane=R, brightfield=True, seed=seed + 1,
-                         compression="zlib", extra_params=extra)
-    _readme(out / "README.txt", "epd_brightfield", __doc__.split("``epd_brightfield``")[1])
+    return {"table": _table_from(pos, dt, meta, R), "shape": (H, W), "optics": optics, "camera": camera,
+            "focal_plane": R, "brightfield": True, "seed": seed + 1, "extra": extra}
+
+
+def _make(name: str, out: Path) -> dict:
+    sc = SCENES[name]()
+    paths = render_movie(sc["table"], out, sc["shape"], sc["optics"], sc["camera"], focal_plane=sc["focal_plane"],
+                         brightfield=sc["brightfield"], seed=sc["seed"], compression="zlib", extra_params=sc["extra"])
+    cal = sc.get("calibration")
+    if cal:
+        paths.update(render_calibration(out, cal["z_min"], cal["z_max"], cal["z_step"], shape=cal["shape"],
+                                        optics=sc["optics"], camera=cal["camera"], radius=cal["radius"],
+                                        seed=cal["seed"], compression="zlib"))
+    keys = list(SCENES)
+    nxt = keys[keys.index(name) + 1] if keys.index(name) + 1 < len(keys) else None
+    text = __doc__.split(f"``{name}``")[1]
+    if nxt:
+        text = text.split(f"``{nxt}``")[0]
+    _readme(out / "README.txt", name, text)
     return paths
 
 
+def make_diffusion2d(out: Path) -> dict:
+    return _make("diffusion2d", Path(out))
+
+
+def make_diffusion3d(out: Path) -> dict:
+    return _make("diffusion3d", Path(out))
+
+
+def make_epd_brightfield(out: Path) -> dict:
+    return _make("epd_brightfield", Path(out))
+
+
+SCENES = {"diffusion2d": diffusion2d_scene, "diffusion3d": diffusion3d_scene, "epd_brightfield": epd_brightfield_scene}
 DATASETS = {"diffusion2d": make_diffusion2d, "diffusion3d": make_diffusion3d, "epd_brightfield": make_epd_brightfield}
 
 
@@ -226,7 +251,7 @@ def main(argv=None) -> int:
     root = Path(a.out)
     for name in a.only or list(DATASETS):
         t0 = time.perf_counter()
-        paths = DATASETS[name](root / name)
+        DATASETS[name](root / name)
         size = sum(f.stat().st_size for f in (root / name).iterdir() if f.is_file())
         print(f"{name}: {size / 1e6:.2f} MB in {time.perf_counter() - t0:.1f} s -> {root / name}", file=sys.stderr)
     return 0
