@@ -1137,7 +1137,7 @@ def estimate_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), estimator: str =
     L = _default_max_lag(tr, max_lag)
     cs = _cve_sums_ragged(tr.stack(comps), tr.off)            # (n_p, k, 4)
     ci = {c: i for i, c in enumerate(comps)}
-    if np.all(cs[:, :, 3].sum(axis=0) == 0):
+    if np.any(cs[:, :, 3].sum(axis=0) == 0):
         raise UserError("no track has three consecutive frames", "give tracks with at least 3 consecutive positions")
     use_boot = n_boot > 0 and n_p >= MIN_PARTICLES_BOOTSTRAP
     W = _boot_weights(n_p, n_boot, rng) if n_boot > 0 and n_p >= 2 else None

@@ -64,8 +64,13 @@ def test_msd_command_default_plot_and_flags(tmp_path, capsys):
     pa = np.repeat(np.arange(30), 150)
     traj = write_table(make_table(fr, fr * DT, pa, p[..., 0].ravel(), p[..., 1].ravel()), tmp_path / "adv.parquet")
     out = tmp_path / "o.json"
-    assert main(["msd", str(traj), "--json", str(out), "--exclude-flagged"]) == 0
+    per = tmp_path / "tracks.csv"
+    assert main(["msd", str(traj), "--json", str(out), "--exclude-flagged", "--tracks-out", str(per)]) == 0
     res = json.loads(out.read_text())
+    import pandas as pd
+    tab = pd.read_csv(per, comment="#")
+    assert len(tab) == 30 and bool(tab.set_index("particle").loc[0, "flagged"])
+    assert {"D_x", "D_x_err", "D_xy", "alpha", "reason"} <= set(tab.columns)
     assert 0 in [f["particle"] for f in res["flagged"]]
     assert res["n_particles"] <= 29 and res["excluded_flagged"]
     assert "directed" in capsys.readouterr().out
@@ -82,6 +87,7 @@ def test_msd_command_default_plot_and_flags(tmp_path, capsys):
     (["{traj}", "--dims", "z"], "2D"),
     (["{short}"], "shorter than 3"),
     (["{traj}", "--plot", "{dir}/m.jpg"], ".png"),
+    (["{traj}", "--tracks-out", "{dir}/t.txt"], ".csv"),
 ])
 def test_msd_command_bad_input_one_line_exit_2_no_output(tmp_path, capsys, args, needle):
     traj = _write(tmp_path / "tr.parquet", n_p=3, n_f=30)

@@ -42,6 +42,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", metavar="OUT", help="write a JSON summary")
     p.add_argument("--plot", metavar="OUT.png", help="MSD plot path (default <TRAJ>_msd.png)")
     p.add_argument("--no-plot", action="store_true", help="do not write the plot")
+    p.add_argument("--tracks-out", metavar="OUT.csv",
+                   help="write one row per track: CVE D per axis with its error, alpha, flag and reason")
 
 
 def _fmt(v, e):
@@ -71,6 +73,8 @@ def run(args) -> int:
         raise UserError(f"--max-lag = {args.max_lag} must be at least 1", "give a number of frames")
     if args.radius is not None and args.viscosity is None:
         raise UserError("--radius given without --viscosity", "give --viscosity (Pa s) for the Stokes-Einstein value")
+    if args.tracks_out is not None and Path(args.tracks_out).suffix.lower() != ".csv":
+        raise UserError(f"--tracks-out {args.tracks_out} is not a .csv file", "give a path ending in .csv")
     plot_path = None if args.no_plot else Path(args.plot) if args.plot else Path(args.traj).with_name(Path(args.traj).stem + "_msd.png")
     if plot_path is not None and plot_path.suffix.lower() != ".png":
         raise UserError(f"plot path {plot_path} is not a .png file", "give a path ending in .png")
@@ -115,6 +119,7 @@ def run(args) -> int:
         if d_se:
             line += f"   {D / d_se:.3f} +- {e / d_se:.2g}"
         print(line)
+    print("side by side (um^2/s): " + " | ".join(f"D_{a} = {_fmt(res.D[a] * 1e12, res.D_err[a] * 1e12)}" for a in axes))
     if d_se:
         print(f"Stokes-Einstein: D_SE = {d_se:.4g} m^2/s = {d_se * 1e12:.4g} um^2/s "
               f"(r = {radius:.4g} m, mu = {args.viscosity:.4g} Pa s, T = {args.temperature:.5g} K)")
@@ -129,6 +134,13 @@ def run(args) -> int:
     if plot_path is not None:
         M.plot_msd(res, plot_path, title=f"{Path(args.traj).name}: {res.estimator.upper()}")
         print(f"wrote {plot_path}")
+    if args.tracks_out:
+        per = M.particle_diffusion(df, axes=axes, motion_blur=M_R, subtract_drift=args.subtract_drift)
+        per = per.merge(flags[["particle", "alpha", "A", "alpha_lo", "alpha_hi", "flagged", "reason"]], on="particle", how="left")
+        with atomic_output(args.tracks_out, "w") as fh:
+            fh.write("# units: D m^2/s, sigma m, A m^2/s^alpha; D by the CVE per track\n")
+            per.to_csv(fh, index=False)
+        print(f"wrote {args.tracks_out}")
     if args.json:
         out = res.to_dict()
         out["D_stokes_einstein"] = d_se
