@@ -134,8 +134,7 @@ def place_particles(n: int, mean_radius: float, alpha: float, lo, hi, seed=None,
         ncell = np.maximum(1, ncell // 2)
     cell = span / ncell
     u = rng.random((n * max_attempts, 3)) if n * max_attempts <= 2_000_000 else None
-    if u is None:  # very large n: draw in blocks to bound memory
-        pos = np.empty((n, 3))
+    if u is None:  # very large n: fewer attempts per particle to bound memory (48 MB of uniforms)
         u = rng.random((n * 20, 3))
         pos, done = _place_kernel(u, radius, lo, hi, ncell, cell, 20)
         if done < n:

@@ -18,7 +18,7 @@ naming the key, the value and what was expected.
     charge = -1.0e-17               # C, or
     charge_per_mass = -1.0          # C/kg (q/m), or
     zeta_potential = -0.05          # V, with fluid.debye_length and fluid.relative_permittivity (eq. 3.33)
-    initial_velocity = "zero"       # "zero" | "terminal" (alias "henry") | "thermal"
+    initial_velocity = "zero"       # "zero" (= fluid velocity) | "terminal" (alias "henry") | "thermal"
 
     [fluid]
     density = 1000.0
@@ -513,7 +513,8 @@ def build_state(scene: Scene, seed=None) -> State:
 
     Positions come from :func:`sim.placement.place_particles` (sequential random
     non-overlapping placement with a cell hash). Initial velocities per
-    ``particles.initial_velocity``: ``zero``; ``terminal``/``henry``: the
+    ``particles.initial_velocity``: ``zero`` (at rest relative to the fluid,
+    i.e. v = v_f); ``terminal``/``henry``: the
     Stokes terminal velocity v_f + F_const / gamma (with the eq. 3.33 charge
     this is the Henry velocity, as the seed initialises its deposition runs);
     ``thermal``: Maxwell-Boltzmann, each component N(0, kB T / m).
