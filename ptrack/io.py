@@ -4,7 +4,7 @@ A *movie* is a multi-page TIFF (classic, BigTIFF, OME-TIFF, ImageJ hyperstack,
 Micro-Manager), or an image sequence (a folder or a glob of TIFF / PNG files,
 one frame per file, natural sort order). :func:`open_movie` returns a
 :class:`Movie` that reads one frame at a time: uncompressed contiguous data is
-memory-mapped, anything else is decoded page by page, so a series never needs
+read frame by frame with positioned reads, anything else is decoded page by page, so a series never needs
 its own size in RAM.
 
 Pixel size (m, in the sample plane) and frame interval (s) are read from the
@@ -144,7 +144,8 @@ class Movie:
     frame_interval : float or None
         s between frames.
     memmapped : bool
-        True if frames are read through a memory map.
+        True if frames are read directly from contiguous uncompressed data
+        (positioned reads, no decoding; nothing stays resident).
     """
 
     def __init__(self, source, reader, n_frames, shape, dtype, pixel_size, frame_interval,
@@ -324,19 +325,29 @@ def _open_tiff(path: Path, allow_float: bool, series_index: int = 0):
         offset = series.dataoffset
         reader = None
         memmapped = False
+        closer_fd = None
         if offset is not None:
             if offset + expected_bytes > size:
                 raise UserError(
                     f"{path} is truncated: {n_frames} frames of {frame_shape[0]}x{frame_shape[1]} need "
                     f"{offset + expected_bytes} bytes, the file has {size}",
                     "re-copy or re-export the complete file")
+            # contiguous uncompressed data: each frame is read straight from the file into a fresh
+            # array (os.preadv), so neither the file nor a memory map of it stays resident
             bo = "<" if tif.byteorder == "<" else ">"
-            mm = np.memmap(str(path), dtype=np.dtype(series.dtype).newbyteorder(bo), mode="r",
-                           offset=offset, shape=(n_frames,) + tuple(frame_shape))
+            fdtype = np.dtype(series.dtype).newbyteorder(bo)
+            frame_bytes = int(np.prod(frame_shape)) * dtype.itemsize
+            fd = os.open(str(path), os.O_RDONLY)
             memmapped = True
 
-            def reader(i, mm=mm):
-                return mm[i]
+            def reader(i, fd=fd):
+                a = np.empty(tuple(frame_shape), fdtype)
+                got = os.preadv(fd, [memoryview(a).cast("B")], offset + i * frame_bytes)
+                if got != frame_bytes:
+                    raise UserError(f"{path}: frame {i} is truncated", "re-copy or re-export the complete file")
+                return a if fdtype.isnative else a.astype(fdtype.newbyteorder("="))
+
+            closer_fd = fd
         else:
             # compressed / tiled / scattered strips: decode page by page
             pages = series.pages
@@ -356,8 +367,13 @@ def _open_tiff(path: Path, allow_float: bool, series_index: int = 0):
     except BaseException:
         tif.close()
         raise
+    def closer():
+        tif.close()
+        if closer_fd is not None:
+            os.close(closer_fd)
+
     return Movie(path, reader, n_frames, frame_shape, dtype, px, dt, memmapped=memmapped,
-                 closer=tif.close, info=info)
+                 closer=closer, info=info)
 
 
 def _read_single_image(p: Path):

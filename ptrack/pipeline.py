@@ -97,7 +97,10 @@ def locate_movie(movie, brightfield: bool = False, diameter: float | None = None
     with _progress(len(frames), Path(movie.source).name, progress) as bar:
         for i in frames:
             raw = movie[i]
-            img = prepare(raw, brightfield=brightfield, background=bg, bg_size=bg_size)
+            if calib is None and not brightfield and isinstance(bg, str) and bg == "spatial":
+                img = None      # fast path: the localiser finds the background at block resolution
+            else:
+                img = prepare(raw, brightfield=brightfield, background=bg, bg_size=bg_size)
             if calib is None:
                 df = locate(raw, img, sigma=sigma, snr=snr, gain=gain, offset=offset, read_noise=read_noise,
                             brightfield=brightfield)
