@@ -3,7 +3,9 @@
 Prints two tables:
 
 * speed: case, frames, wall time, frames/s, steady frames/s (after the first
-  frame, i.e. without the PSF stack and numba cache loading), peak RSS (each
+  frame, i.e. without the PSF stack and numba cache loading), CPU seconds and
+  steady frames per CPU-second (load-independent: the renderer runs on one
+  core, so on an idle machine wall = CPU), peak RSS (each
   case runs in a fresh subprocess so its peak memory is its own; wall time
   excludes interpreter start-up and imports);
 * accuracy: the PSF against the analytic Airy disk, flux conservation, and
@@ -49,15 +51,26 @@ def _table(n_particles, n_frames, H, W, zspan=0.0, seed=0, dt=0.1, D=0.86e-12):
                       meta={"frame_interval": dt})
 
 
+_CPU = {}
+
+
 def _consume(gen):
-    """Iterate frames; return (count, seconds to the first frame, seconds for the rest)."""
+    """Iterate frames; return (count, seconds to the first frame, seconds for the rest).
+
+    Also records the CPU time of the frames after the first (``_CPU['rest']``):
+    the renderer is single-threaded, so CPU seconds are what an idle machine's
+    wall clock would show, whatever the load of a shared machine.
+    """
     t0 = time.perf_counter()
     n = 0
     t1 = t0
+    c1 = time.process_time()
     for _ in gen:
         n += 1
         if n == 1:
             t1 = time.perf_counter()
+            c1 = time.process_time()
+    _CPU["rest"] = time.process_time() - c1
     return n, t1 - t0, time.perf_counter() - t1
 
 
@@ -66,6 +79,7 @@ def case(name: str, quick: bool) -> dict:
 
     F = 30 if quick else 130
     t0 = time.perf_counter()
+    c0 = time.process_time()
     if name == "512x512, 50 particles, in focus":
         tab = _table(50, F, 512, 512)
         n, first, rest = _consume(render_frames(tab, (512, 512), seed=1))
@@ -86,6 +100,7 @@ def case(name: str, quick: bool) -> dict:
             size = paths["movie"].stat().st_size
         n = F
         return {"frames": n, "wall": time.perf_counter() - t0, "bytes": size, "first": None, "rest": None,
+                "cpu": time.process_time() - c0, "cpu_rest": None,
                 "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
     elif name == "calibration +-60 um / 2 um, 64x64 (seed default)":
         with tempfile.TemporaryDirectory() as d:
@@ -95,6 +110,7 @@ def case(name: str, quick: bool) -> dict:
     else:
         raise SystemExit(f"unknown case {name}")
     return {"frames": n, "wall": time.perf_counter() - t0, "first": first, "rest": rest,
+            "cpu": time.process_time() - c0, "cpu_rest": _CPU.get("rest") if rest is not None else None,
             "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
@@ -180,7 +196,8 @@ def main():
         print(json.dumps(case(a.case, a.quick)))
         return
     print(f"sim.render benchmark ({os.cpu_count()} CPUs; machine may be shared: times are upper bounds)")
-    print(f"{'case':52s} {'frames':>6s} {'wall s':>8s} {'frames/s':>9s} {'steady f/s':>10s} {'peak RSS MB':>12s}")
+    print(f"{'case':52s} {'frames':>6s} {'wall s':>8s} {'frames/s':>9s} {'steady f/s':>10s} {'CPU s':>7s} "
+          f"{'steady f/CPU-s':>14s} {'peak RSS MB':>12s}")
     for name in CASES:
         if a.no_big and name.startswith("2560"):
             continue
@@ -192,7 +209,9 @@ def main():
         d = json.loads(r.stdout.strip().splitlines()[-1])
         extra = f"   ({d['bytes'] / 1e9:.2f} GB written)" if "bytes" in d else ""
         steady = f"{(d['frames'] - 1) / d['rest']:10.1f}" if d.get("rest") else f"{'-':>10s}"
-        print(f"{name:52s} {d['frames']:6d} {d['wall']:8.2f} {d['frames'] / d['wall']:9.1f} {steady} {d['rss_mb']:12.0f}{extra}")
+        steady_cpu = f"{(d['frames'] - 1) / d['cpu_rest']:14.1f}" if d.get("cpu_rest") else f"{'-':>14s}"
+        print(f"{name:52s} {d['frames']:6d} {d['wall']:8.2f} {d['frames'] / d['wall']:9.1f} {steady} {d['cpu']:7.2f} "
+              f"{steady_cpu} {d['rss_mb']:12.0f}{extra}")
     print()
     print(f"{'accuracy check':72s} value")
     for k, v in accuracy():

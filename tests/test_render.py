@@ -429,3 +429,28 @@ def test_very_far_defocus_falls_back_to_the_geometric_blur_ellipse():
     assert img[c, c] == pytest.approx(1e6 / (np.pi * rx * ry), rel=1e-9)
     assert img[c, int(c + 0.995 * rx)] > 0 and img[c, int(c + 1.005 * rx) + 1] == 0
     assert img[int(c + 0.995 * ry), c] > 0 and img[int(c + 1.005 * ry) + 1, c] == 0
+
+
+def test_edge_cases_of_the_input_table(tmp_path):
+    from ptrack.errors import UserError
+
+    t = _small_table()
+    # a photons column sets the brightness per row; negative photons are refused
+    t2 = t.assign(photons=np.where(t["particle"] == 0, 0.0, 5000.0))
+    paths = render_movie(t2, tmp_path / "ph", (36, 48), seed=0, progress=False)
+    truth = read_table(paths["truth"])
+    assert (truth.loc[truth["particle"] == 0, "signal"] == 0).all()
+    assert (truth.loc[truth["particle"] != 0, "signal"] > 0).all()
+    with pytest.raises(UserError):
+        list(render_frames(t.assign(photons=-1.0), (36, 48)))
+    # NaN positions are a user error, not a crash
+    bad = t.copy()
+    bad.loc[0, "x"] = np.nan
+    with pytest.raises(UserError):
+        list(render_frames(bad, (36, 48)))
+    with pytest.raises(UserError):
+        render_movie(t.iloc[:0], tmp_path / "empty", (36, 48), progress=False)
+    # a particle far outside the frame costs nothing and adds nothing
+    far = make_table([0], [0.0], [0], [1.0], [1.0], [0.0], meta={"frame_interval": 0.1})
+    img = next(expected_frames(far, (20, 20), None, Camera(background=3.0)))
+    assert np.all(img == 3.0)

@@ -438,6 +438,30 @@ def render_movie(table: pd.DataFrame, out_dir, shape=(256, 256), optics: Optics 
     :func:`render_frames`; ``compression`` e.g. ``"zlib"`` (lossless);
     ``extra_params`` are merged into ``params.json``.
 
+    The truth table is the input table (all rows, SI units, metadata
+    ``pixel_size``, ``frame_interval``, ``focal_plane``) plus:
+
+    ``x_px``, ``y_px``
+        Exact image position, pixels (trackpy convention).
+    ``photons``
+        Photons per exposure of the particle (brightfield: removed from the field).
+    ``signal``
+        Expected peak of the particle's image above the background, ADU
+        (gain x QE x brightest pixel of its noise-free image; brightfield: the
+        depth of its dip).
+    ``defocus``
+        ``z - focal_plane``, m (0 for 2D rows).
+    ``radius``
+        Particle radius used for the size blur, m.
+    ``in_frame``
+        True if the centre lies inside the image (rows outside are kept: their
+        light may still reach the frame).
+
+    The TIFF carries ImageJ metadata (``unit`` um, X/Y resolution in pixels
+    per um, ``finterval`` in s) and the same numbers, SI, as JSON in the
+    ImageJ ``Info`` property: ``json.loads(TiffFile(p).imagej_metadata["Info"])``
+    gives ``pixel_size`` (m), ``frame_interval`` (s), ``focal_plane``, ``shape``...
+
     Returns
     -------
     dict with paths ``movie``, ``truth``, ``params``.
