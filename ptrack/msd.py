@@ -48,7 +48,12 @@ What is here
   :func:`cve_from_positions`.
 - :func:`plot_msd`: log-log MSD per axis with the fitted model, as PNG.
 
-A note on the seed document (Table 4.1): D from an n-dimensional MSD is
+Notes on the seed document: it fits a polynomial to the whole MSD curve
+(eq. 3.30). Fitting a fixed fraction of the curve wastes most of the
+information (bench/bench_msd.py: 25 % of the curve gives 2.3-10x the Cramer-Rao
+bound, ~65-70 % error for a single track); the optimal-lag fit stays within
+1.12x of the bound and the CVE is at the bound for small localisation error.
+Table 4.1: D from an n-dimensional MSD is
 ``MSD / (2 n t)``. D_x, D_y (n = 1) and D_xy (n = 2, MSD = <dx^2 + dy^2>) must
 agree within their errors on isotropic data; here D_xy is exactly the mean of
 the 1D estimates taken on the same displacements.
