@@ -55,7 +55,7 @@ bound, ~65-70 % error for a single track); the optimal-lag fit stays within
 1.12x of the bound and the CVE is at the bound for small localisation error.
 Table 4.1: D from an n-dimensional MSD is
 ``MSD / (2 n t)``. D_x, D_y (n = 1) and D_xy (n = 2, MSD = <dx^2 + dy^2>) must
-agree within their errors on isotropic data; here D_xy is exactly the mean of
+agree within their errors on isotropic data; here D_xy is the mean (exactly, for the CVE) of
 the 1D estimates taken on the same displacements.
 """
 from __future__ import annotations
