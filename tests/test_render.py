@@ -454,3 +454,38 @@ def test_edge_cases_of_the_input_table(tmp_path):
     far = make_table([0], [0.0], [0], [1.0], [1.0], [0.0], meta={"frame_interval": 0.1})
     img = next(expected_frames(far, (20, 20), None, Camera(background=3.0)))
     assert np.all(img == 3.0)
+
+
+def test_localisation_scatter_matches_the_cramer_rao_bound():
+    """End-to-end check of PSF + noise: an Airy fit to rendered noisy frames scatters as the
+    Cramer-Rao bound computed from the expected image and the camera model says."""
+    cam = Camera(photons=2000.0, background=10.0)
+    n = 100
+    rng = np.random.default_rng(1)
+    xs, ys = 20 + rng.uniform(-0.5, 0.5, n), 20 + rng.uniform(-0.5, 0.5, n)
+    f = np.arange(n)
+    t = make_table(f, f * 0.1, f, xs * PX, ys * PX, np.zeros(n), meta={"frame_interval": 0.1})
+    frames = np.array(list(render_frames(t, (40, 40), None, cam, seed=2)), float)
+
+    def mu_e(x, y):
+        tt = make_table([0], [0.0], [0], [x * PX], [y * PX], [0.0], meta={"frame_interval": 0.1})
+        return next(expected_frames(tt, (40, 40), None, cam)) * cam.quantum_efficiency
+
+    d = 1e-3
+    m = mu_e(20.2, 19.9)
+    J = np.stack([((mu_e(20.2 + d, 19.9) - mu_e(20.2 - d, 19.9)) / (2 * d)).ravel(),
+                  ((mu_e(20.2, 19.9 + d) - mu_e(20.2, 19.9 - d)) / (2 * d)).ravel(),
+                  (m - cam.background * cam.quantum_efficiency).ravel(), np.ones(m.size)], 1)
+    fisher = J.T @ (J / (m + cam.read_noise ** 2).ravel()[:, None])
+    crlb = np.sqrt(np.linalg.inv(fisher)[0, 0])
+    yy, xx = np.mgrid[13:28, 13:28]
+    errs = []
+    for k in range(n):
+        e = (frames[k][yy, xx] - cam.offset) / cam.gain
+        w = 1 / np.sqrt(np.maximum(e, 0) + cam.read_noise ** 2 + 1)
+        fit = least_squares(lambda p: ((_airy_model(p, xx, yy, sub=4) - e) * w).ravel(),
+                            [e.max(), 20, 20, np.median(e)], x_scale=[100, 0.1, 0.1, 1])
+        errs.append(fit.x[1] - xs[k])
+    ratio = np.std(errs) / crlb
+    assert 0.85 < ratio < 1.35, (np.std(errs), crlb)
+    assert abs(np.mean(errs)) < 3 * crlb / np.sqrt(n)
