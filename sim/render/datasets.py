@@ -243,6 +243,33 @@ SCENES = {"diffusion2d": diffusion2d_scene, "diffusion3d": diffusion3d_scene, "e
 DATASETS = {"diffusion2d": make_diffusion2d, "diffusion3d": make_diffusion3d, "epd_brightfield": make_epd_brightfield}
 
 
+def write_index(root: Path) -> Path:
+    """``root/README.txt``: what the datasets are, the files in each, and how to regenerate them."""
+    lines = [
+        "Synthetic microscope datasets with exact ground truth (sim.render).",
+        "Regenerate all: make data   (= python -m sim.render.datasets --out data/synthetic; deterministic seeds)",
+        "",
+        "Files in each directory:",
+        "  movie.tif      16-bit multi-page TIFF (ImageJ metadata: pixel size, frame interval;",
+        "                 SI values as JSON in the ImageJ 'Info' property)",
+        "  truth.parquet  ground-truth trajectories (ptrack table: frame, t, particle, x, y, z in m,",
+        "                 x_px, y_px, photons, signal, defocus, radius, in_frame)",
+        "  params.json    every rendering parameter (optics, camera, seeds, D_true, ...)",
+        "  calib.tif, calib_z.csv, calib_params.json  (diffusion3d) defocus calibration stack and its z (m)",
+        "",
+    ]
+    summary = {
+        "diffusion2d": "2D Brownian motion near focus, R = 250 nm, 10 fps, 130 frames, 192x192 px; D_true in params.json",
+        "diffusion3d": "3D Brownian motion over +-2.5 um with astigmatism, 100 frames, 160x160 px; calibration +-3 um / 0.1 um",
+        "epd_brightfield": "brightfield, 0.8 um particles drifting onto the substrate at the Henry velocity, 30 fps, 100 frames",
+    }
+    for name in SCENES:
+        lines.append(f"  {name + '/':18s}{summary.get(name, '')}")
+    path = root / "README.txt"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m sim.render.datasets", description=__doc__.splitlines()[0])
     p.add_argument("--out", default="data/synthetic", help="output directory (default data/synthetic)")
@@ -254,6 +281,7 @@ def main(argv=None) -> int:
         DATASETS[name](root / name)
         size = sum(f.stat().st_size for f in (root / name).iterdir() if f.is_file())
         print(f"{name}: {size / 1e6:.2f} MB in {time.perf_counter() - t0:.1f} s -> {root / name}", file=sys.stderr)
+    write_index(root)
     return 0
 
 
