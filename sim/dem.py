@@ -38,7 +38,7 @@ import numpy as np
 from numba import njit
 
 from sim.forces.contact import (D_MAX_DAMP, D_MAX_OVERLAP, D_MAX_OVERLAP_I, D_MAX_W2, D_N_CONTACTS, D_SIZE,
-                                pair_forces, wall_forces)
+                                pair_forces, pair_forces_parallel, wall_forces)
 from sim.forces.drag import drag_force_scalar
 from sim.neighbors import _build, carry_history, needs_rebuild, wrap_positions
 
@@ -123,7 +123,7 @@ def _external(pos, vel, radius, mass, charge, gamma, fconst, drag_mode, extp, se
 @njit(cache=True)
 def _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt,
             model, cp, cpw, nf_model, nfp, rotation, walls, whist, start, nbj, shift, hist,
-            force, torque, diag):
+            force, torque, diag, fbuf, tbuf, dbuf):
     force[:, :] = 0.0
     if rotation:
         torque[:, :] = 0.0
@@ -131,8 +131,12 @@ def _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, ext
         diag[k] = 0.0
     _external(pos, vel, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt, force)
     if model != 0 or nf_model != 0:
-        pair_forces(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist, force, torque,
-                    model, cp, nf_model, nfp, rotation, dt, diag)
+        if fbuf.shape[0] > 1:
+            pair_forces_parallel(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist, force, torque,
+                                 model, cp, nf_model, nfp, rotation, dt, diag, fbuf, tbuf, dbuf)
+        else:
+            pair_forces(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist, force, torque,
+                        model, cp, nf_model, nfp, rotation, dt, diag)
     if walls.shape[0] > 0 and model != 0:
         wall_forces(pos, vel, omega, radius, mass, walls, whist, force, torque, model, cpw, rotation, dt, diag)
 
@@ -160,7 +164,7 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
                pos, image, vel, omega, force, torque, radius, mass, inertia, charge, gamma, fconst,
                drag_mode, extp, seed, model, cp, cpw, nf_model, nfp, rotation, walls, whist,
                start, nbj, shift, hist, ref_pos, cutoff, skin, lo, length, periodic, limits, diag,
-               dchunk, force_rebuild_at_end):
+               dchunk, force_rebuild_at_end, nthreads):
     """Advance up to ``nsteps`` steps.  Returns
     ``(status, steps_done, particle, start, nbj, shift, hist, ref_pos, n_builds)``.
 
@@ -172,6 +176,14 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
     n = pos.shape[0]
     nbuild = 0
     hdt = 0.5 * dt
+    # per-thread force buffers of the threaded pair kernel (allocated once per chunk)
+    if nthreads > 1:
+        fbuf = np.zeros((nthreads, n, 3))
+        tbuf = np.zeros((nthreads, n, 3))
+    else:
+        fbuf = np.zeros((1, 0, 3))
+        tbuf = np.zeros((1, 0, 3))
+    dbuf = np.zeros((max(nthreads, 1), D_SIZE))
     # buffers for the phi-scheme (allocated once per chunk)
     if integrator == 1:
         x0 = np.empty_like(pos)
@@ -213,7 +225,7 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
                 nbuild += 1
             _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt,
                     model, cp, cpw, nf_model, nfp, rotation, walls, whist, start, nbj, shift, hist,
-                    force, torque, diag)
+                    force, torque, diag, fbuf, tbuf, dbuf)
             for i in range(n):
                 im = hdt / mass[i]
                 vel[i, 0] += im * force[i, 0]
@@ -245,7 +257,7 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
                 whist[:, :] = whist0
                 _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt,
                         model, cp, cpw, nf_model, nfp, rotation, walls, whist, start, nbj, shift, hist,
-                        force, torque, diag)
+                        force, torque, diag, fbuf, tbuf, dbuf)
                 for i in range(n):
                     for c in range(3):
                         vel[i, c] = v0[i, c] + dt / mass[i] * (phi * force[i, c] + (1.0 - phi) * f0[i, c])
@@ -265,7 +277,7 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
                 nbuild += 1
             _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt,
                     model, cp, cpw, nf_model, nfp, rotation, walls, whist, start, nbj, shift, hist,
-                    force, torque, diag)
+                    force, torque, diag, fbuf, tbuf, dbuf)
         if diag[D_MAX_OVERLAP] > dchunk[0]:
             dchunk[0] = diag[D_MAX_OVERLAP]
         if diag[D_MAX_W2] > dchunk[1]:
@@ -330,13 +342,17 @@ class DEMSystem:
         Key of the counter-based Brownian random numbers.
     max_overlap, v_max : float
         Blow-up limits (overlap / radius, speed in m/s).
+    threads : int
+        1: serial pair kernel (bitwise reproducible); T > 1: the threaded
+        kernel with T blocks (reproducible for the same T, round-off
+        differences from the serial sum).
     """
 
     def __init__(self, pos, vel, radius, mass, charge=None, *, model=1, cp=None, cpw=None, nf_model=0,
                  nfp=None, rotation=True, walls=None, box_lo=(0, 0, 0), box_length=(1, 1, 1),
                  periodic=(0, 0, 0), fconst=None, drag_mode=DRAG_NONE, gamma=None, extp=None, dt=1e-6,
                  skin=None, cutoff=0.0, seed=0, max_overlap=0.5, v_max=np.inf, integrator=0, phi=0.0,
-                 n_iter=3):
+                 n_iter=3, threads=1):
         f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
         self.pos = f64(np.array(pos, dtype=np.float64, copy=True))
         n = len(self.pos)
@@ -372,6 +388,7 @@ class DEMSystem:
         self.integrator = int(integrator)
         self.phi = float(phi)
         self.n_iter = int(n_iter)
+        self.threads = int(threads)
         self.step = 0
         self.t = 0.0
         self.n_builds = 0
@@ -411,7 +428,13 @@ class DEMSystem:
         _forces(self.pos, self.vel, self.omega, self.radius, self.mass, self.charge, self.gamma, self.fconst,
                 self.drag_mode, self.extp, self.seed, self.step, self.dt, self.model, self.cp, self.cpw,
                 self.nf_model, self.nfp, self.rotation, self.walls, self.whist, self.start, self.nbj,
-                self.shift, self.hist, self.force, self.torque, self.diag)
+                self.shift, self.hist, self.force, self.torque, self.diag, *self._buffers())
+
+    def _buffers(self):
+        t = int(self.threads)
+        if t > 1:
+            return np.zeros((t, self.n, 3)), np.zeros((t, self.n, 3)), np.zeros((t, D_SIZE))
+        return np.zeros((1, 0, 3)), np.zeros((1, 0, 3)), np.zeros((1, D_SIZE))
 
     @property
     def unwrapped(self):
@@ -431,7 +454,7 @@ class DEMSystem:
                          self.extp, self.seed, self.model, self.cp, self.cpw, self.nf_model, self.nfp,
                          self.rotation, self.walls, self.whist, self.start, self.nbj, self.shift, self.hist,
                          self.ref_pos, self.cutoff, self.skin, self.lo, self.length, self.periodic, self.limits,
-                         self.diag, self.dchunk, bool(rebuild_at_end))
+                         self.diag, self.dchunk, bool(rebuild_at_end), int(self.threads))
         status, done, part, self.start, self.nbj, self.shift, self.hist, self.ref_pos, nb = out
         self.step += done
         self.t += done * self.dt

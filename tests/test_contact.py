@@ -179,3 +179,22 @@ def test_same_forces_across_periodic_boundary_and_in_interior():
     np.testing.assert_allclose(out[1][0], out[0][0], rtol=1e-9, atol=1e-9 * np.abs(out[0][0]).max())
     np.testing.assert_allclose(out[1][1], out[0][1], rtol=1e-9, atol=1e-9 * np.abs(out[0][1]).max())
     np.testing.assert_allclose(out[1][2], out[0][2], atol=1e-12)
+
+
+def test_threaded_pair_kernel_matches_serial():
+    L = np.array([1.0, 1.0, 1.0])
+    pos, rng = _dense_random(500, L, 2)
+    rad = np.full(len(pos), 0.05)
+    m = np.full(len(pos), 0.8)
+    cp = hooke_params(1e7, 0.4, mu=0.5)
+    out = []
+    for threads in (1, 3):
+        s = DEMSystem(pos, np.zeros_like(pos), rad, m, model=CONTACT_HOOKE, cp=cp, rotation=True, box_length=L,
+                      periodic=(1, 1, 1), dt=1e-6, threads=threads)
+        s.vel[:] = np.random.default_rng(9).standard_normal(pos.shape)
+        s.run(200)
+        out.append((s.force.copy(), s.torque.copy(), s.diag.copy()))
+    scale = np.abs(out[0][0]).max()
+    np.testing.assert_allclose(out[1][0], out[0][0], atol=1e-9 * scale)
+    np.testing.assert_allclose(out[1][1], out[0][1], atol=1e-9 * np.abs(out[0][1]).max())
+    assert out[1][2][4] == out[0][2][4] > 100

@@ -49,7 +49,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from sim.forces.nearfield import fast_pow, nearfield_magnitude
 
@@ -209,16 +209,11 @@ def _law(model, cp, delta, nx, ny, nz, d, ri, rj, wall, meff,
 
 
 @njit(cache=True)
-def pair_forces(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist,
-                force, torque, model, cp, nf_model, nfp, rotation, dt, diag):
-    """Accumulate all particle-particle forces over a half neighbour list.
-
-    ``force`` and ``torque`` (N, 3) are added to (not cleared).  ``diag`` (5,)
-    receives max overlap ratio, its particle, max k/m, max eta/m, contacts.
-    """
-    n = pos.shape[0]
+def _pair_rows(i0, i1, pos, vel, omega, radius, mass, charge, start, nbj, shift, hist,
+               force, torque, model, cp, nf_model, nfp, rotation, dt, diag):
+    """Pair forces of the list rows ``i0 <= i < i1`` (partners j anywhere)."""
     ncontact = 0
-    for i in range(n):
+    for i in range(i0, i1):
         xi = pos[i, 0]
         yi = pos[i, 1]
         zi = pos[i, 2]
@@ -313,6 +308,64 @@ def pair_forces(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist,
             torque[i, 1] += tyi
             torque[i, 2] += tzi
     diag[4] += ncontact
+
+
+@njit(cache=True)
+def pair_forces(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist,
+                force, torque, model, cp, nf_model, nfp, rotation, dt, diag):
+    """Accumulate all particle-particle forces over a half neighbour list.
+
+    ``force`` and ``torque`` (N, 3) are added to (not cleared).  ``diag`` (5,)
+    receives max overlap ratio, its particle, max k/m, max eta/m, contacts.
+    """
+    _pair_rows(0, pos.shape[0], pos, vel, omega, radius, mass, charge, start, nbj, shift, hist,
+               force, torque, model, cp, nf_model, nfp, rotation, dt, diag)
+
+
+@njit(cache=True, parallel=True)
+def pair_forces_parallel(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist,
+                         force, torque, model, cp, nf_model, nfp, rotation, dt, diag, fbuf, tbuf, dbuf):
+    """Threaded :func:`pair_forces`: the list rows are split into ``T = fbuf.shape[0]``
+    blocks of equal pair count, each block accumulates into its own buffer
+    (no write conflicts; contact history entries belong to one row), and the
+    buffers are summed in a fixed order, so the result is deterministic for a
+    given ``T`` (it differs from the serial sum only by round-off)."""
+    n = pos.shape[0]
+    nt = fbuf.shape[0]
+    m = start[n]
+    for t in prange(nt):
+        # rows [i0, i1) holding about m / nt pairs each
+        i0 = np.searchsorted(start, (t * m) // nt)
+        i1 = np.searchsorted(start, ((t + 1) * m) // nt) if t < nt - 1 else n
+        if t == 0:
+            i0 = 0
+        fb = fbuf[t]
+        tb = tbuf[t]
+        fb[:, :] = 0.0
+        tb[:, :] = 0.0
+        for k in range(D_SIZE):
+            dbuf[t, k] = 0.0
+        if i1 > i0:
+            _pair_rows(i0, i1, pos, vel, omega, radius, mass, charge, start, nbj, shift, hist,
+                       fb, tb, model, cp, nf_model, nfp, rotation, dt, dbuf[t])
+    for i in prange(n):
+        for t in range(nt):
+            force[i, 0] += fbuf[t, i, 0]
+            force[i, 1] += fbuf[t, i, 1]
+            force[i, 2] += fbuf[t, i, 2]
+            if rotation:
+                torque[i, 0] += tbuf[t, i, 0]
+                torque[i, 1] += tbuf[t, i, 1]
+                torque[i, 2] += tbuf[t, i, 2]
+    for t in range(nt):
+        if dbuf[t, 0] > diag[0]:
+            diag[0] = dbuf[t, 0]
+            diag[1] = dbuf[t, 1]
+        if dbuf[t, 2] > diag[2]:
+            diag[2] = dbuf[t, 2]
+        if dbuf[t, 3] > diag[3]:
+            diag[3] = dbuf[t, 3]
+        diag[4] += dbuf[t, 4]
 
 
 @njit(cache=True)
