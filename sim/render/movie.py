@@ -189,7 +189,7 @@ def frame_interval_of(table: pd.DataFrame) -> float:
 class _Scene:
     """Per-row arrays prepared once for a table."""
 
-    def __init__(self, table, shape, optics, camera, focal_plane, motion_blur_substeps, radius, progress_stack=False):
+    def __init__(self, table, shape, optics, camera, focal_plane, motion_blur_substeps, radius):
         table = validate(table.copy())
         self.table = table
         try:
@@ -277,7 +277,7 @@ class _Scene:
         need = ((np.maximum(np.abs(lo_z), np.abs(hi_z)) + o.line_focus_offset) * o.half_angle_tan
                 + o.psf_margin * o.airy_radius + 2.0 * self.radius) * 2.0 / self.pixel + 2 + 4 * self.blur_px
         ladder = [patch_size(o, self.pixel, 0.0, 0.0)]
-        top = float(need.max()) if len(need) else 0.0
+        top = min(float(need.max()), MAX_PATCH) if len(need) else 0.0
         while ladder[-1] < top:
             ladder.append(_fast_even(int(math.ceil(ladder[-1] * 1.25))))
         ladder = np.array(ladder)
@@ -292,12 +292,14 @@ class _Scene:
         lf = 2.0 * o.medium_index * o.astigmatism / o.na ** 2
         self.far_rx = np.abs(self.defocus - lf) * o.half_angle_tan / self.pixel
         self.far_ry = np.abs(self.defocus + lf) * o.half_angle_tan / self.pixel
-        for ci, k in enumerate(np.unique(key[~far])):
+        keys = np.unique(key[~far])
+        for ci, k in enumerate(keys):
             sel = key == k
             self.row_class[sel] = ci
             n = int(ladder[k // 2])
+            # all stacks together stay within ~512 MB (plane spacing coarsened if needed)
             st = build_psf_stack(o, self.pixel, float(lo_z[sel].min()), float(hi_z[sel].max()),
-                                 float(self.radius[sel].max()), n=n)
+                                 float(self.radius[sel].max()), n=n, max_bytes=512e6 / len(keys))
             self.renderers.append(_Renderer(st))
         if not self.renderers:  # empty table: one in-focus class so that frames can still be drawn
             self.renderers.append(_Renderer(build_psf_stack(o, self.pixel, 0.0, 0.0, 0.0)))
