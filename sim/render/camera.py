@@ -117,11 +117,12 @@ def _poisson_cdf_table(mean: float) -> np.ndarray:
 
 
 @njit(cache=True)
-def _classify(lam, B, eps, cls):
-    """0: background only; 1: background + small residual; 2: + large residual; 3: below background."""
+def _classify(ph, scale, B, eps, cls):
+    """Class of each pixel's mean lam = max(ph, 0) * scale against the background mean B:
+    0 background only; 1 background + small residual; 2 + large residual; 3 below background."""
     n1 = 0
-    for i in range(lam.size):
-        r = lam[i] - B
+    for i in range(ph.size):
+        r = max(ph[i], 0.0) * scale - B
         if r > eps:
             if r <= 40.0:
                 cls[i] = 1
@@ -149,10 +150,10 @@ def _guide_table(cdf, G):
 
 
 @njit(cache=True)
-def _poisson_split(lam, B, cdf, guide, u1, cls, u2, out):
+def _poisson_split(ph, scale, B, cdf, guide, u1, cls, u2, out):
     j = 0
     G = guide.size
-    for i in range(lam.size):
+    for i in range(ph.size):
         c = cls[i]
         if c == 3:
             out[i] = 0.0  # filled by the caller
@@ -164,7 +165,7 @@ def _poisson_split(lam, B, cdf, guide, u1, cls, u2, out):
             k0 += 1
         k = float(k0)
         if c == 1:
-            r = lam[i] - B
+            r = max(ph[i], 0.0) * scale - B
             p = math.exp(-r)
             cum = p
             kk = 0
@@ -192,36 +193,55 @@ def _to_adu(e, z, read_noise, gain, offset, maxv, out):
         out[i] = np.uint16(v)
 
 
-def poisson(lam: np.ndarray, rng: np.random.Generator, background: float | None = None) -> np.ndarray:
-    """Poisson draws (float64) with means ``lam``; deterministic for a given Generator state.
+class Workspace:
+    """Reusable scratch arrays for :func:`expose` (frame after frame of one size: no page faults)."""
 
-    ``background``: the common mean of most pixels (default: the median of
-    ``lam``); only the excess over it costs a second draw. Exact in
-    distribution (the split is the additivity of independent Poisson variables).
+    def __init__(self):
+        self._bufs: dict = {}
+
+    def get(self, name: str, n: int, dtype) -> np.ndarray:
+        b = self._bufs.get(name)
+        if b is None or b.size != n or b.dtype != np.dtype(dtype):
+            b = np.empty(n, dtype=dtype)
+            self._bufs[name] = b
+        return b
+
+
+def poisson(lam: np.ndarray, rng: np.random.Generator, background: float | None = None, scale: float = 1.0,
+            work: Workspace | None = None) -> np.ndarray:
+    """Poisson draws (float64) with means ``max(lam, 0) * scale``; deterministic for a given Generator state.
+
+    ``background``: the common mean of most pixels (after scaling; default:
+    the median); only the excess over it costs a second draw. Exact in
+    distribution (the split is the additivity of independent Poisson
+    variables). ``work``: scratch arrays to reuse (the result may live in it).
     """
     flat = np.ascontiguousarray(lam, dtype=np.float64).ravel()
     if flat.size == 0:
         return np.zeros(np.shape(lam))
-    B = float(np.median(flat)) if background is None else float(background)
+    scale = float(scale)
+    B = float(np.median(np.maximum(flat, 0.0) * scale)) if background is None else float(background)
     B = max(B, 0.0)
+    work = work or Workspace()
+    n = flat.size
     cdf = _poisson_cdf_table(B)
-    cls = np.empty(flat.size, dtype=np.int8)
+    cls = work.get("cls", n, np.int8)
     eps = 1e-9 * max(B, 1.0)
-    n1 = _classify(flat, B, eps, cls)
-    u1 = rng.random(flat.size)
+    n1 = _classify(flat, scale, B, eps, cls)
+    u1 = rng.random(n, out=work.get("u1", n, np.float64))
     u2 = rng.random(n1)
-    out = np.empty(flat.size)
-    _poisson_split(flat, B, cdf, _guide_table(cdf, 4 * cdf.size), u1, cls, u2, out)
+    out = work.get("e", n, np.float64)
+    _poisson_split(flat, scale, B, cdf, _guide_table(cdf, 4 * cdf.size), u1, cls, u2, out)
     big = cls == 2
     if big.any():
-        out[big] += rng.poisson(flat[big] - B)
+        out[big] += rng.poisson(np.maximum(flat[big], 0.0) * scale - B)
     low = cls == 3
     if low.any():
-        out[low] = rng.poisson(np.maximum(flat[low], 0.0))
+        out[low] = rng.poisson(np.maximum(flat[low], 0.0) * scale)
     return out.reshape(np.shape(lam))
 
 
-def expose(photons: np.ndarray, camera: Camera, rng: np.random.Generator) -> np.ndarray:
+def expose(photons: np.ndarray, camera: Camera, rng: np.random.Generator, work: Workspace | None = None) -> np.ndarray:
     """Turn expected photons per pixel into a noisy uint16 camera frame.
 
     Parameters
@@ -230,17 +250,21 @@ def expose(photons: np.ndarray, camera: Camera, rng: np.random.Generator) -> np.
         Expected photons reaching each pixel during the exposure (>= 0).
     camera : Camera
     rng : numpy.random.Generator
+    work : Workspace, optional
+        Scratch arrays reused from frame to frame.
 
     Returns
     -------
     ndarray (H, W), uint16
     """
-    lam = np.maximum(photons, 0.0) * camera.quantum_efficiency
-    e = poisson(lam, rng, background=camera.background * camera.quantum_efficiency)
+    work = work or Workspace()
+    e = poisson(photons, rng, background=camera.background * camera.quantum_efficiency,
+                scale=camera.quantum_efficiency, work=work)
+    read = work.get("z", e.size, np.float32)
     if camera.read_noise > 0:
-        read = rng.standard_normal(e.size, dtype=np.float32)
+        rng.standard_normal(e.size, dtype=np.float32, out=read)
     else:
-        read = np.zeros(e.size, dtype=np.float32)
+        read[:] = 0.0
     out = np.empty(e.size, dtype=np.uint16)
     _to_adu(e.ravel(), read, float(camera.read_noise), float(camera.gain), float(camera.offset), float(camera.max_adu), out)
     return out.reshape(np.shape(photons))

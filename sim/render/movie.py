@@ -36,7 +36,7 @@ from numba import njit
 from ptrack.errors import UserError, atomic_output, check_positive
 from ptrack.table import metadata, validate, write_table
 
-from .camera import Camera, expose
+from .camera import Camera, Workspace, expose
 from .optics import Optics, PSFStack, build_psf_stack, check_sampling, patch_size, sample_pixel_size, size_transfer
 
 __all__ = ["render_frames", "expected_frames", "render_movie", "frame_interval_of"]
@@ -323,10 +323,17 @@ class _Scene:
             out.append((w, self.x_px[idx] + vx * tau, self.y_px[idx] + vy * tau, self.defocus[idx] + vz * tau))
         return out
 
-    def expected(self, idx, brightfield: bool):
-        """Expected photons per pixel (H, W) for the rows ``idx`` of one frame, and each row's peak photons."""
+    def expected(self, idx, brightfield: bool, out=None):
+        """Expected photons per pixel (H, W) for the rows ``idx`` of one frame, and each row's peak photons.
+
+        ``out``: an (H, W) float64 array to fill (reused frame after frame), else a new one.
+        """
         H, W = self.shape
-        img = np.full((H, W), float(self.camera.background))
+        if out is None:
+            img = np.full((H, W), float(self.camera.background))
+        else:
+            img = out
+            img.fill(float(self.camera.background))
         peaks = np.zeros(len(idx))
         sign = -1.0 if brightfield else 1.0
         cls = self.row_class[idx]
@@ -363,9 +370,11 @@ class _Scene:
 
 def _iter_frames(scene: _Scene, brightfield: bool, seed):
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    work = Workspace()
+    buf = np.empty(scene.shape)
     for f, idx in zip(scene.frames, scene.groups):
-        img, peaks = scene.expected(idx, brightfield)
-        yield int(f), idx, expose(img, scene.camera, rng), peaks
+        img, peaks = scene.expected(idx, brightfield, out=buf)
+        yield int(f), idx, expose(img, scene.camera, rng, work), peaks
 
 
 def render_frames(table: pd.DataFrame, shape=(256, 256), optics: Optics | None = None, camera: Camera | None = None,
@@ -488,6 +497,9 @@ def render_movie(table: pd.DataFrame, out_dir, shape=(256, 256), optics: Optics 
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     by_frame = dict(zip((int(f) for f in scene.frames), scene.groups))
 
+    work = Workspace()
+    buf = np.empty((H, W))
+
     def pages():
         bar = None
         if progress:
@@ -499,9 +511,9 @@ def render_movie(table: pd.DataFrame, out_dir, shape=(256, 256), optics: Optics 
                 idx = by_frame.get(f)
                 if idx is None:
                     idx = np.zeros(0, dtype=np.int64)
-                img, peaks = scene.expected(idx, brightfield)
+                img, peaks = scene.expected(idx, brightfield, out=buf)
                 signal[idx] = peaks * gain_qe
-                yield expose(img, scene.camera, rng)
+                yield expose(img, scene.camera, rng, work)
                 if bar is not None:
                     bar.update(1)
         finally:
