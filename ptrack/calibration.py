@@ -296,6 +296,21 @@ def _parabola_vertex(x0, x1, x2, y0, y1, y2):
     return x1 + t, y1 + b * t + a * t * t
 
 
+def _gauss3(y0, y1, y2):
+    """Sub-pixel offset of a peak from three samples by a Gaussian (log-parabola) fit.
+
+    Less biased towards the sample than a plain parabola for the bell-shaped
+    peak of a correlation map; falls back to the parabola when a sample is
+    not positive.
+    """
+    if y0 > 0 and y1 > 0 and y2 > 0:
+        l0, l1, l2 = math.log(y0), math.log(y1), math.log(y2)
+        den = l0 - 2 * l1 + l2
+        if den < 0:
+            return float(np.clip(0.5 * (l0 - l2) / den, -1.0, 1.0))
+    return _parabola_vertex(-1.0, 0.0, 1.0, y0, y1, y2)[0]
+
+
 def _subpixel_peaks(maps):
     """Height of each correlation map's maximum, refined by a parabola through it and its neighbours per axis.
 
@@ -326,10 +341,20 @@ def _subpixel_peaks(maps):
     return out
 
 
-def _quadratic_peak(z, c, k, n_points):
-    """z of the maximum of a least-squares parabola through Cm(z) at the ``n_points`` pages around page k."""
+def _quadratic_peak(z, c, k, n_points=None, drop: float = 0.15):
+    """z of the maximum of a least-squares parabola through Cm(z) around page k.
+
+    By default the widest symmetric window of up to 9 pages whose Cm all
+    stay within ``drop`` of the best: fine calibration steps then average
+    the template noise over many pages, while coarse steps (where Cm falls
+    fast from page to page) still get the classic three-point vertex.
+    ``n_points`` fixes the window instead.
+    """
     K = len(z)
-    w = max(1, int(n_points) // 2)
+    w = 4 if n_points is None else max(1, int(n_points) // 2)
+    if n_points is None:
+        while w > 1 and c[max(0, k - w):min(K, k + w + 1)].min() < c[k] - drop:
+            w -= 1
     lo, hi = max(0, k - w), min(K, k + w + 1)
     if hi - lo < 3:
         return float(z[k])
@@ -342,7 +367,7 @@ def _quadratic_peak(z, c, k, n_points):
 
 
 def match_templates(img, rows, cols, calib: Calibration, margin: int = 4, cm_min: float = 0.5,
-                    smooth: float = 1.0, z_points: int = 5):
+                    smooth: float = 1.5, z_points: int | None = None, cm_drop: float = 0.15):
     """z, refined x, y and Cm of particles near (rows, cols) by normalised cross-correlation.
 
     Parameters
@@ -356,9 +381,12 @@ def match_templates(img, rows, cols, calib: Calibration, margin: int = 4, cm_min
         Search +- margin px around each centre.
     cm_min : float
         Drop matches with a lower correlation.
-    z_points : int
-        Pages around the best one fitted by a parabola Cm(z) (3 = the
-        classic three-point vertex; 5 averages out template noise).
+    z_points : int, optional
+        Pages around the best one fitted by a parabola Cm(z); by default the
+        widest window of up to 9 pages whose Cm stay within ``cm_drop`` of
+        the best.
+    cm_drop : float
+        See ``z_points``.
     smooth : float
         Gaussian smoothing (px) of frame and templates before correlating
         (0: none). Defocused images spread their photons over many pixels;
@@ -396,14 +424,14 @@ def match_templates(img, rows, cols, calib: Calibration, margin: int = 4, cm_min
         cm = float(peak[k])
         if cm < cm_min:
             continue
-        z = _quadratic_peak(calib.z, peak, k, z_points)
+        z = _quadratic_peak(calib.z, peak, k, z_points, cm_drop)
         mp = maps[k]
         i, j = np.unravel_index(int(np.argmax(mp)), mp.shape)
         di = dj = 0.0
         if 0 < i < mp.shape[0] - 1:
-            di = _parabola_vertex(-1.0, 0.0, 1.0, mp[i - 1, j], mp[i, j], mp[i + 1, j])[0]
+            di = _gauss3(mp[i - 1, j], mp[i, j], mp[i + 1, j])
         if 0 < j < mp.shape[1] - 1:
-            dj = _parabola_vertex(-1.0, 0.0, 1.0, mp[i, j - 1], mp[i, j], mp[i, j + 1])[0]
+            dj = _gauss3(mp[i, j - 1], mp[i, j], mp[i, j + 1])
         # template top-left at window (i, j) -> frame coordinates
         h = halves[k]
         y = (ri - pad) - h - m + i + di + calib.centers[k, 0]
@@ -430,7 +458,7 @@ def match_templates(img, rows, cols, calib: Calibration, margin: int = 4, cm_min
 
 
 def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, margin: int = 4,
-              cm_min: float = 0.5, min_area: int = 4, smooth: float = 1.0) -> pd.DataFrame:
+              cm_min: float = 0.5, min_area: int = 4, smooth: float = 1.5) -> pd.DataFrame:
     """Detect defocused particles in a background-subtracted frame and measure x, y, z, Cm."""
     rows, cols, _ = detect_blobs(img, sigma=sigma, snr=snr, min_area=min_area)
     return match_templates(img, rows, cols, calib, margin=margin, cm_min=cm_min, smooth=smooth)

@@ -29,14 +29,14 @@ def calib():
 
 def test_calibration_pages_recovered(calib):
     """Pages of an independent noisy stack come back at their own z, a small fraction of the step."""
-    errs, cms = [], []
+    errs, cms, dxy = [], [], []
     for z, img in zip(Z, render.calibration_images(Z, shape=(72, 72), optics=OPTICS, camera=CAMERA, seed=2)):
         df = locate_3d(prepare(img, background="none"), calib)
         assert len(df) == 1
         errs.append(df["z"].iloc[0] - z)
         cms.append(df["cm"].iloc[0])
-        assert df["x_px"].iloc[0] == pytest.approx(35.0, abs=0.15)
-        assert df["y_px"].iloc[0] == pytest.approx(35.0, abs=0.15)
+        dxy.append((df["x_px"].iloc[0] - 35.0, df["y_px"].iloc[0] - 35.0))
+    assert np.abs(dxy).max() < 0.3 and np.sqrt(np.mean(np.square(dxy))) < 0.12   # x, y from the correlation peak
     errs = np.abs(errs)
     assert np.median(errs) < 0.15 * STEP and errs.max() < 0.6 * STEP, errs / STEP
     assert min(cms) > 0.9
