@@ -344,14 +344,21 @@ def _subpixel_peaks(maps):
 def _quadratic_peak(z, c, k, n_points=None, drop: float = 0.15):
     """z of the maximum of a least-squares parabola through Cm(z) around page k.
 
-    By default the widest symmetric window of up to 9 pages whose Cm all
-    stay within ``drop`` of the best: fine calibration steps then average
-    the template noise over many pages, while coarse steps (where Cm falls
-    fast from page to page) still get the classic three-point vertex.
+    By default 3, 5 or 9 pages as the best Cm is above 0.998, above 0.994 or
+    lower (a noisy match needs more pages to average over; a clean one has a
+    sharp peak that a wide parabola would bias), narrowed while any page's
+    Cm falls more than ``drop`` below the best (coarse calibration steps get
+    the classic three-point vertex).
     ``n_points`` fixes the window instead.
     """
     K = len(z)
-    w = 4 if n_points is None else max(1, int(n_points) // 2)
+    if n_points is None:
+        # the noisier the match (lower Cm), the more pages are needed to average it out; at a
+        # near-perfect match the sharp Cm(z) peak is better served by few pages (less shape bias)
+        miss = 1.0 - c[k]
+        w = 1 if miss < 0.002 else (2 if miss < 0.006 else 4)
+    else:
+        w = max(1, int(n_points) // 2)
     if n_points is None:
         while w > 1 and c[max(0, k - w):min(K, k + w + 1)].min() < c[k] - drop:
             w -= 1
