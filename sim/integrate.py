@@ -429,8 +429,10 @@ def choose_integrator(scene, state, fconst) -> IntegratorChoice:
     the trapezoidal rule if the Reynolds number (Stokes terminal speed, or
     the initial velocities) exceeds 1 (piecewise drag) or B != 0; otherwise
     the exact OU update. dt "auto": the output interval for the exact update
-    of free particles (it is exact for any dt), refined so that a step moves a
-    particle by at most 5 % of its radius when walls are present; 0.2 of the
+    of free particles (it is exact for any dt), refined so that the drift
+    moves a particle by at most 5 % of its radius per step when walls are
+    present (reflecting a free Brownian step at a plane is exact by the
+    method of images); 0.2 of the
     smallest (linearised) relaxation time for the trapezoidal rule; and a
     1 %-of-radius step for overdamped runs with hindered mobility.
 
@@ -490,20 +492,22 @@ def choose_integrator(scene, state, fconst) -> IntegratorChoice:
         if kind == "ou_exact":
             dt = out
             if walls:
-                D = scene.kT / state.gamma
+                # reflecting a free Brownian step at a plane is exact (method of images), so only the
+                # drift limits dt: |u| dt <= 5 % of the radius
                 speed = np.linalg.norm(fconst / state.gamma[:, None], axis=1)
-                # displacement per step <= 5 % of the radius: sqrt(2 D dt) + |u| dt <= 0.05 R
-                lim_w = np.min(_step_limit(D, speed, 0.05 * state.radius))
+                lim_w = np.min(_step_limit(np.zeros_like(speed), speed, 0.05 * state.radius))
                 if lim_w < dt:
                     dt = lim_w
-                    why.append("dt limited so that a step moves a particle by <= 5 % of its radius (walls)")
+                    why.append("dt limited so that the drift moves a particle by <= 5 % of its radius per step (walls)")
         elif kind == "trapezoidal":
             dt = min(out, 0.2 * tau_eff)
             why.append(f"dt = 0.2 x relaxation time {tau_eff:.3g} s")
         else:
             dt = out
             if walls or spec.hindered_mobility:
-                D = scene.kT / state.gamma
+                # hindered mobility: the diffusive step must resolve the mobility gradient near the wall
+                # (1 % of the radius); plain reflecting walls: only the drift limits dt (5 % of the radius)
+                D = scene.kT / state.gamma if spec.hindered_mobility else np.zeros(state.n)
                 speed = np.linalg.norm(fconst / state.gamma[:, None], axis=1)
                 frac = 0.01 if spec.hindered_mobility else 0.05
                 lim_w = np.min(_step_limit(D, speed, frac * state.radius))

@@ -190,7 +190,8 @@ def run_scene(scene: Scene, out_dir, seed=None, progress: bool = True, resume: b
             "integrator": choice.kind, "dt": choice.dt, "integrator_reason": choice.reason, "seed": scene.seed}
     stepper = Stepper(scene, state, fconst, choice)
     n = state.n
-    group = max(1, min(n_out, max_rows_per_chunk // max(n, 1)))
+    # frames per kernel call: bounded by the rows per Parquet chunk and by ~2e7 particle-steps (progress bar)
+    group = max(1, min(n_out, max_rows_per_chunk // max(n, 1), int(2e7 // max(n * choice.steps_per_output, 1))))
     buf_pos = np.empty((group, n, 3))
     buf_vel = np.empty((group, n, 3))
     dt_out = scene.time.output_interval
