@@ -230,3 +230,28 @@ def test_hindered_overdamped_keeps_uniform_heights():
     # the layer next to the wall (gap < 5 % of a) is neither empty nor piled up
     near = np.mean(h < 0.05)
     assert near == pytest.approx(0.05, abs=4 * math.sqrt(0.05 * 0.95 / n))
+
+
+def test_reflecting_walls_keep_uniform_density_with_large_steps():
+    """Pure diffusion between two reflecting planes stays uniform even when a step is ~0.3 of the gap."""
+    from scipy import stats
+
+    n, a, L = 20000, 1e-7, 2e-6
+    sc = scene_from_dict({
+        "seed": 8,
+        "particles": {"count": n, "radius": a, "density": 2200.0},
+        "fluid": {"viscosity": 1e-3, "temperature": 293.0},
+        "gravity": {"enabled": False},
+        "domain": {"size": [1e-3, 1e-3, L]},
+        "boundaries": {"x": "periodic", "y": "periodic", "bottom_wall": True, "top": "wall"},
+        "time": {"final": 0.1, "output_interval": 0.01 * (0.3 * (L - 2 * a)) ** 2 / (2 * KT / GAMMA) / 0.01},
+    })
+    st = build_state(sc)
+    st.pos[:, 2] = np.random.default_rng(1).uniform(a, L - a, n)
+    fc = constant_force(sc, st)
+    ch = choose_integrator(sc, st, fc)
+    assert ch.steps_per_output == 1  # no drift: the walls do not shorten dt
+    pos, _ = Stepper(sc, st, fc, ch).advance(10)
+    h = (pos[-1, :, 2] - a) / (L - 2 * a)
+    assert h.min() >= 0 and h.max() <= 1
+    assert stats.kstest(h, "uniform").pvalue > 1e-3

@@ -158,3 +158,25 @@ def test_periodic_modes_and_interaction_sections():
     sc = scene_from_dict(raw)
     assert sc.boundaries.modes.tolist() == [[PERIODIC, WALL, WALL], [PERIODIC, WALL, WALL]]
     assert sc.interactions is None
+
+
+def test_interaction_sections_go_to_the_dem_engine(tmp_path, monkeypatch):
+    raw = copy.deepcopy(BASE)
+    raw["contact"] = {"model": "hooke", "kn": 1.0, "restitution": 0.5}
+    sc = scene_from_dict(raw)
+    assert sc.interactions is not None and sc.interactions.any_pair_force
+    assert sc.to_dict()["interactions"] == {"contact": {"model": "hooke", "kn": 1.0, "restitution": 0.5}}
+    import sim.dem
+    from sim.run import run_scene
+    seen = {}
+
+    def fake_run_dem(scene, out_dir, resume=False, progress=True):
+        seen.update(scene=scene, out_dir=out_dir, resume=resume)
+        return "dem"
+
+    monkeypatch.setattr(sim.dem, "run_dem", fake_run_dem)
+    assert run_scene(sc, tmp_path, progress=False) == "dem"
+    assert seen["scene"].interactions is sc.interactions
+    with pytest.raises(UserError, match="contact.colour"):
+        raw["contact"] = {"colour": 1}
+        scene_from_dict(raw)
