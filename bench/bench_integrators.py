@@ -17,6 +17,11 @@ perturbation grows or decays over 4000 steps), against the predictions
 2 tau / (1 - 2 phi); and the same for the piecewise drag at Re ~ 15 (R = 1 um, mu = 1e-4 Pa s), where
 the prediction uses the linearised relaxation time m / (dF/dv).
 
+Part 3: calibration of the diffusion study's 95 % confidence intervals:
+the fraction of independent seeds whose CI covers D_SE (R = 100 nm,
+mu = 1e-3 Pa s, 200 particles x 1000 frames per seed) should be ~0.95; the
+chance that all 12 cases of one study cover is then 0.95^12 = 0.54.
+
 Run: .venv/bin/python bench/bench_integrators.py [--quick]
 """
 from __future__ import annotations
@@ -152,6 +157,24 @@ def main():
     pred = 2 * tau_eff
     print(f"{f'piecewise drag, Re = {re:.2f}':<34} {0:>5g} {meas:>16.6g} {pred:>12.6g} {meas / pred:>7.4f}"
           f"   (Stokes 2 m/gamma = {2 * m2 / g2:.4g} s would be {2 * m2 / g2 / meas:.2f}x too large)")
+
+
+    from scipy import stats
+
+    from sim.studies.diffusion import diffusion_cases, simulate_case
+    n_seeds = 20 if args.quick else 200
+    t0 = time.perf_counter()
+    cover, errs = [], []
+    for seed in range(n_seeds):
+        case = diffusion_cases(replicates=20, particles=10, frames=1000, seed=seed, radii=(R,), viscosities=(MU,))[0]
+        r = simulate_case(case)
+        cover.append(r["ci_covers"])
+        errs.append(r["D_sim"] / r["D_analytical"] - 1)
+    k = int(np.sum(cover))
+    lo, hi = stats.beta.ppf([0.025, 0.975], k + 0.5, n_seeds - k + 0.5)
+    print(f"\nPart 3: 95 % CI coverage over {n_seeds} seeds: {k}/{n_seeds} = {k / n_seeds:.3f} "
+          f"(Jeffreys 95 % interval {lo:.3f}-{hi:.3f}); mean D error {100 * np.mean(errs):+.3f} % "
+          f"+- {100 * np.std(errs, ddof=1) / math.sqrt(n_seeds):.3f} % (bias check); {time.perf_counter() - t0:.1f} s")
 
 
 if __name__ == "__main__":
