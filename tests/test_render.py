@@ -517,3 +517,26 @@ def test_movie_particles_match_their_calibration_page():
         zfit = zc[j] + 0.5 * (y0 - y2) / (y0 - 2 * y1 + y2) * 0.1e-6
         assert cm[j] > 0.99
         assert abs(zfit - ztrue[k]) < 0.02e-6, (zfit, ztrue[k])
+
+
+@pytest.mark.parametrize("B", [0.0, 9.0])
+def test_poisson_sampler_is_exact_for_every_kind_of_pixel(B):
+    """Background-only, faint-tail (pooled), moderate (inversion), bright (numpy) and below-background
+    pixels all get Poisson counts with the right mean and variance."""
+    from sim.render.camera import poisson
+
+    levels = [0.0, 0.01, 0.1, 0.2, 0.3, 1.0, 10.0, 100.0] + ([-3.0, -8.9] if B > 0 else [])
+    m = 20000
+    lam = np.repeat(B + np.array(levels), m)
+    rng = np.random.default_rng(5)
+    x = np.mean([poisson(lam, rng, background=B) for _ in range(3)], axis=0)  # 3 frames averaged
+    x1 = poisson(lam, rng, background=B)
+    for i, lv in enumerate(levels):
+        mu = B + lv
+        sl = slice(i * m, (i + 1) * m)
+        if mu == 0:
+            assert np.all(x1[sl] == 0)
+            continue
+        assert abs(x[sl].mean() - mu) < 5 * np.sqrt(mu / (3 * m)), (lv, x[sl].mean(), mu)
+        assert abs(x1[sl].var() - mu) < 5 * mu * np.sqrt(2 / m) + 5 * np.sqrt(mu / m), (lv, x1[sl].var(), mu)
+        assert np.all(x1[sl] == np.round(x1[sl])) and x1[sl].min() >= 0

@@ -95,11 +95,16 @@ class Camera:
 # Poisson draws. A frame is mostly a constant background B (photo-electrons per
 # pixel) plus particle light on a few pixels: Poisson(B + r) = Poisson(B) + Poisson(r)
 # for r >= 0, so the background part is drawn by inverting a precomputed CDF table
-# (binary search, one uniform per pixel) and only pixels with r > 0 draw a second
-# number: by CDF inversion for small r, with numpy's Generator.poisson for large r.
+# (guide table, one uniform per pixel) and only pixels with r > 0 need more:
+# * faint tails (0 < r < _TINY): independent Poisson(r_i) counts on many pixels are
+#   one Poisson process: draw the total N ~ Poisson(sum r_i) and drop the N events
+#   on the pixels with probabilities r_i / sum r (exact; costs O(N), not O(pixels));
+# * _TINY <= r <= _SMALL_MEAN: CDF inversion with a second uniform;
+# * r > _SMALL_MEAN: numpy's Generator.poisson.
 # Pixels below the background (brightfield dips) draw Poisson(lam) directly.
-# All uniforms come from the caller's numpy Generator: same seed, same frame.
+# All random numbers come from the caller's numpy Generator: same seed, same frame.
 _SMALL_MEAN = 40.0
+_TINY = 0.25
 
 
 def _poisson_cdf_table(mean: float) -> np.ndarray:
@@ -117,14 +122,22 @@ def _poisson_cdf_table(mean: float) -> np.ndarray:
 
 
 @njit(cache=True)
-def _classify(ph, scale, B, eps, cls):
+def _classify(ph, scale, B, eps, tiny, cls):
     """Class of each pixel's mean lam = max(ph, 0) * scale against the background mean B:
-    0 background only; 1 background + small residual; 2 + large residual; 3 below background."""
+    0 background only; 1 background + small residual (inversion); 2 + large residual;
+    3 below background; 4 background + faint residual r < tiny (pooled Poisson process).
+    Returns (number of class 1, number of class 4, sum of the class-4 residuals)."""
     n1 = 0
+    n4 = 0
+    r4 = 0.0
     for i in range(ph.size):
         r = max(ph[i], 0.0) * scale - B
         if r > eps:
-            if r <= 40.0:
+            if r < tiny:
+                cls[i] = 4
+                n4 += 1
+                r4 += r
+            elif r <= 40.0:
                 cls[i] = 1
                 n1 += 1
             else:
@@ -133,7 +146,31 @@ def _classify(ph, scale, B, eps, cls):
             cls[i] = 3
         else:
             cls[i] = 0
-    return n1
+    return n1, n4, r4
+
+
+@njit(cache=True)
+def _scatter_events(ph, scale, B, cls, n4, u, out, cum, idx):
+    """Drop len(u) events (u uniform in [0, sum r)) on the class-4 pixels with probability ~ r_i."""
+    j = 0
+    acc = 0.0
+    for i in range(ph.size):
+        if cls[i] == 4:
+            acc += max(ph[i], 0.0) * scale - B
+            cum[j] = acc
+            idx[j] = i
+            j += 1
+    for k in range(u.size):
+        t = u[k] * acc
+        lo = 0
+        hi = n4 - 1
+        while lo < hi:
+            mid = (lo + hi) >> 1
+            if cum[mid] > t:
+                hi = mid
+            else:
+                lo = mid + 1
+        out[idx[lo]] += 1.0
 
 
 @njit(cache=True)
@@ -227,11 +264,15 @@ def poisson(lam: np.ndarray, rng: np.random.Generator, background: float | None 
     cdf = _poisson_cdf_table(B)
     cls = work.get("cls", n, np.int8)
     eps = 1e-9 * max(B, 1.0)
-    n1 = _classify(flat, scale, B, eps, cls)
+    n1, n4, r4 = _classify(flat, scale, B, eps, _TINY, cls)
     u1 = rng.random(n, out=work.get("u1", n, np.float64))
     u2 = rng.random(n1)
     out = work.get("e", n, np.float64)
     _poisson_split(flat, scale, B, cdf, _guide_table(cdf, 4 * cdf.size), u1, cls, u2, out)
+    if n4:
+        events = rng.random(int(rng.poisson(r4)))
+        _scatter_events(flat, scale, B, cls, n4, events, out, work.get("cum", n, np.float64),
+                        work.get("idx", n, np.int64))
     big = cls == 2
     if big.any():
         out[big] += rng.poisson(np.maximum(flat[big], 0.0) * scale - B)
