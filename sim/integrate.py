@@ -56,6 +56,8 @@ from sim.forces.drag import drag_factor, max_reynolds
 
 log = logging.getLogger("sim.integrate")
 
+OVERDAMPED_RATIO = 1.0e4  # "auto" uses overdamped BD when the step is at least this many m/gamma
+
 try:
     from ptrack.wall import (parallel_ratio_nb, perpendicular_ratio_derivative_nb,  # noqa: F401
                              perpendicular_ratio_nb)
@@ -428,7 +430,9 @@ def choose_integrator(scene, state, fconst) -> IntegratorChoice:
     ``auto``: overdamped BD if near-wall hindered mobility is requested;
     the trapezoidal rule if the Reynolds number (Stokes terminal speed, or
     the initial velocities) exceeds 1 (piecewise drag) or B != 0; otherwise
-    the exact OU update. dt "auto": the output interval for the exact update
+    overdamped BD if the step (dt, or the output interval) is at least
+    1e4 m/gamma (the velocity has no memory from one step to the next, and
+    BD needs half the random numbers), else the exact OU update. dt "auto": the output interval for the exact update
     of free particles (it is exact for any dt), refined so that the drift
     moves a particle by at most 5 % of its radius per step when walls are
     present (reflecting a free Brownian step at a plane is exact by the
@@ -460,9 +464,18 @@ def choose_integrator(scene, state, fconst) -> IntegratorChoice:
             kind = "trapezoidal"
             why.append("magnetic field B != 0 (velocity-dependent Lorentz force) -> trapezoidal rule")
         else:
-            kind = "ou_exact"
-            why.append(f"Stokes drag (Re <= {max(re_est, 0):.3g} <= 1), B = 0 -> exact OU update "
-                       f"(m/gamma = {tau_min:.3g} s; exact for any dt)")
+            step = scene.time.dt if scene.time.dt is not None else scene.time.output_interval
+            tau_max = float(tau.max())
+            if step >= OVERDAMPED_RATIO * tau_max:
+                kind = "overdamped"
+                why.append(f"Stokes drag (Re <= {max(re_est, 0):.3g} <= 1), B = 0 and dt = {step:.3g} s >= "
+                           f"{OVERDAMPED_RATIO:g} m/gamma = {OVERDAMPED_RATIO * tau_max:.3g} s: velocities relax "
+                           "within a step -> overdamped Brownian dynamics (exact for free particles; velocity "
+                           "column = drift velocity)")
+            else:
+                kind = "ou_exact"
+                why.append(f"Stokes drag (Re <= {max(re_est, 0):.3g} <= 1), B = 0 -> exact OU update "
+                           f"(m/gamma = {tau_min:.3g} s; exact for any dt)")
     else:
         why.append(f"integrator {kind!r} requested")
     if kind in ("ou_exact", "overdamped") and re_est > 1.0:

@@ -130,6 +130,8 @@ def test_unstable_dt_refused_with_largest_stable_dt():
 def test_auto_choice_by_physics():
     *_, ch = make("auto")
     assert ch.kind == "ou_exact" and "exact" in ch.reason
+    *_, ch = make("auto", out=2e4 * TAU)
+    assert ch.kind == "overdamped" and "m/gamma" in ch.reason
     *_, ch = make("auto", fields={"B": [0.0, 0.0, 1.0]})
     assert ch.kind == "trapezoidal" and "magnetic" in ch.reason
     # Re > 1: 1 um sphere driven hard in a thin fluid
