@@ -338,6 +338,8 @@ def test_bad_input_is_a_user_error(tmp_path):
         list(render_frames(_small_table(), (0, 10)))
     with pytest.raises(UserError):
         render_calibration(tmp_path, 1e-6, -1e-6, 1e-7, progress=False)
+    with pytest.raises(UserError):  # exposure longer than the frame interval (0.25 s)
+        list(render_frames(_small_table(), (36, 48), camera=Camera(exposure=0.3)))
     with pytest.raises(UserError):  # pixel coarser than Nyquist
         list(render_frames(_small_table(), (10, 10), Optics(magnification=20)))
 
