@@ -191,6 +191,8 @@ def add_arguments(p) -> None:
     add_study_arguments(p)
     p.add_argument("--particles", type=int, default=10, help="particles per replicate (default 10, as the seed)")
     p.add_argument("--frames", type=int, default=None, help="output frames per particle (default 5000; --quick 500)")
+    p.add_argument("--integrator", choices=("ou_exact", "overdamped"), default="ou_exact",
+                   help="time integrator (both exact for free particles; default ou_exact)")
 
 
 def run(args) -> int:
@@ -206,9 +208,10 @@ def run(args) -> int:
         raise UserError("one particle per case gives no confidence interval", "use --replicates/--particles >= 2")
     out = args.out or "study_diffusion"
     res = run_study(replicates=reps, particles=args.particles, frames=frames, seed=args.seed,
-                    scheduler=args.scheduler, use_dask=not args.no_dask, workers=args.workers)
+                    scheduler=args.scheduler, use_dask=not args.no_dask, workers=args.workers,
+                    integrator=args.integrator)
     paths = write_outputs(res, out, args.json)
-    print(f"Diffusion study: {reps} x {args.particles} particles x {frames} frames per case, exact OU integrator, "
+    print(f"Diffusion study: {reps} x {args.particles} particles x {frames} frames per case, {args.integrator} integrator, "
           f"CVE estimator over x, y, z (D in um^2/s)")
     print(f"{'mu (Pa s)':>10} {'R (nm)':>8} {'D_SE':>12} {'D_sim':>12} {'95% CI':>27} {'err %':>7} covers")
     for c in res["cases"]:

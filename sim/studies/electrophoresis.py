@@ -194,7 +194,7 @@ def write_outputs(result: dict, out_dir, json_path=None) -> list[Path]:
         with atomic_output(out_dir / "electrophoresis_table.csv", "w") as fh:
             pe_decade_table(cases).to_csv(fh, index=False)
         paths.append(out_dir / "electrophoresis_table.csv")
-        fig, ax = plt.subplots(1, 2, figsize=(12, 4.8))
+        fig, ax = plt.subplots(1, 3, figsize=(17, 4.8))
         pe = df["Pe"].to_numpy()
         ratio = (df["v_sim"] / df["v_henry_exact"]).to_numpy()
         hi = df["re_gt_1"].to_numpy()
@@ -203,18 +203,26 @@ def write_outputs(result: dict, out_dir, json_path=None) -> list[Path]:
         for p_, r_, re_ in zip(pe[hi], ratio[hi], df["Re"].to_numpy()[hi]):
             ax[0].annotate(f"Re={re_:.2g}", (p_, r_), textcoords="offset points", xytext=(4, -10), fontsize=7,
                            color="red")
-        ax[0].semilogx(pe, (df["v_henry_sf"] / df["v_henry_exact"]).to_numpy(), "k_", ms=6,
-                       label="Swan-Furst f / exact f")
         ax[0].axhline(1.0, color="k", lw=0.8)
         ax[0].set(xlabel="Pe = 4 pi R^2 |E zeta| eps eps0 f / kT", ylabel="v_sim / v_Henry(exact f)",
                   title="Terminal velocity / Henry velocity (cf. seed Fig. 3.15)")
         ax[0].legend(fontsize=8)
+        floor = 1e-17
+        for col, mk, lab in (("err_henry", "o", "vs exact Henry"), ("err_henry_sf", "s", "vs Swan-Furst Henry"),
+                             ("err_balance", "^", "vs force balance (eq. 3.36)")):
+            ax[1].loglog(pe, np.maximum(df[col].to_numpy(), floor), mk, ms=4, mfc="none", label=lab)
+        ax[1].loglog(pe[hi], np.maximum(df["err_henry"].to_numpy()[hi], floor), "o", color="red", ms=7,
+                     label="Re > 1 cases")
+        ax[1].axhline(1e-4, color="0.5", ls="--", lw=0.8)
+        ax[1].set(xlabel="Pe", ylabel="|v_sim / v_ref - 1|",
+                  title="Relative error per reference (Swan-Furst: its 0.15 % approximation)")
+        ax[1].legend(fontsize=7)
         x = np.abs(df["v_henry_exact"].to_numpy())
-        ax[1].loglog(x[~hi], np.abs(df["v_sim"].to_numpy())[~hi], "o", ms=4, label="Re <= 1")
-        ax[1].loglog(x[hi], np.abs(df["v_sim"].to_numpy())[hi], "o", color="red", ms=6, label="Re > 1")
-        ax[1].loglog([x.min(), x.max()], [x.min(), x.max()], "k-", lw=0.8, label="v = v_Henry")
-        ax[1].set(xlabel="|v_Henry| (m/s)", ylabel="|v_sim| (m/s)", title="Simulated vs Henry velocity")
-        ax[1].legend(fontsize=8)
+        ax[2].loglog(x[~hi], np.abs(df["v_sim"].to_numpy())[~hi], "o", ms=4, label="Re <= 1")
+        ax[2].loglog(x[hi], np.abs(df["v_sim"].to_numpy())[hi], "o", color="red", ms=6, label="Re > 1")
+        ax[2].loglog([x.min(), x.max()], [x.min(), x.max()], "k-", lw=0.8, label="v = v_Henry")
+        ax[2].set(xlabel="|v_Henry| (m/s)", ylabel="|v_sim| (m/s)", title="Simulated vs Henry velocity")
+        ax[2].legend(fontsize=8)
         fig.tight_layout()
         with atomic_output(out_dir / "electrophoresis.png", None) as tmp:
             fig.savefig(tmp, dpi=120, format="png")
