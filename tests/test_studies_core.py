@@ -19,6 +19,8 @@ def test_diffusion_study_small(tmp_path):
         assert c["D_analytical"] == pytest.approx(stokes_einstein(c["radius"], c["viscosity"], 293.0))
         lo, hi = c["D_ci95"]
         assert lo < c["D_sim"] < hi
+        flo, fhi = c["D_ci95_family"]
+        assert flo < lo and fhi > hi  # simultaneous intervals are wider
         # 20 particles x 400 frames x 3 axes: the CVE's SE is ~1.4 %; 5 % is > 3.5 SE
         assert c["error_pct"] < 5.0
         assert (hi - lo) / 2 / c["D_sim"] < 0.05
