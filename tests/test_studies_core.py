@@ -118,3 +118,18 @@ def test_simulate_cli(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "particles.radius" in err and "-1e-07" in err
     assert not (tmp_path / "b" / "trajectories.parquet").exists()
+
+
+def test_study_commands(tmp_path, capsys):
+    assert main(["study", "electrophoresis", "--quick", "--no-dask", "--out", str(tmp_path / "e"),
+                 "--json", str(tmp_path / "e.json")]) == 0
+    out = capsys.readouterr().out
+    assert "Re > 1" in out and "Pe decade" in out
+    doc = json.loads((tmp_path / "e.json").read_text())
+    assert doc["summary"]["max_err_henry_re_le_1"] < 1e-4 and doc["summary"]["max_err_balance"] < 1e-6
+    assert (tmp_path / "e" / "electrophoresis.png").exists()
+    assert main(["study", "diffusion", "--no-dask", "--replicates", "1", "--particles", "5", "--frames", "60",
+                 "--out", str(tmp_path / "d")]) == 0
+    assert (tmp_path / "d" / "diffusion.csv").exists()
+    assert main(["study", "diffusion", "--no-dask", "--frames", "2"]) == 2
+    assert "--frames" in capsys.readouterr().err
