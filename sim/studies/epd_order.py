@@ -9,7 +9,8 @@ other by a screened-Coulomb (Yukawa / DLVO double-layer) force
 (:mod:`sim.forces.contact`, Hooke without damping) that keeps cores apart
 when the field pushes hard.  A particle sticks when it touches the substrate;
 particles above it are free to rearrange under the field, the repulsion and
-thermal motion.  Once everything has arrived, the final deposit is analysed
+thermal motion (``--substrate contact``: a hard frictionless substrate
+instead, on which particles stay laterally mobile).  Once everything has arrived, the final deposit is analysed
 with the ten Wolde solid-like criterion on Steinhardt q6 (the "relative
 order" ``N_ordered / N`` of Giera et al.) and the mean q6.
 
@@ -43,7 +44,7 @@ DEFAULTS = dict(radius=100e-9, temperature=293.0, viscosity=1e-3, eps_r=80.0, ps
 
 
 @njit(cache=True, nogil=True)
-def _bd_deposit(pos, radius, a, gamma, kT, f_field, t_end, dt0, nfp, cp, length, skin, seed, max_steps):
+def _bd_deposit(pos, radius, a, gamma, kT, f_field, t_end, dt0, nfp, cp, length, skin, seed, max_steps, stick):
     n = pos.shape[0]
     D = kT / gamma
     np.random.seed(seed)
@@ -96,8 +97,12 @@ def _bd_deposit(pos, radius, a, gamma, kT, f_field, t_end, dt0, nfp, cp, length,
             for c in range(3):
                 pos[i, c] += force[i, c] / gamma * dt + s * np.random.standard_normal()
             if pos[i, 2] <= radius[i]:
-                pos[i, 2] = radius[i]
-                stuck[i] = True
+                if stick:
+                    pos[i, 2] = radius[i]
+                    stuck[i] = True
+                else:
+                    # hard, frictionless substrate: reflecting boundary for the centre at z = R
+                    pos[i, 2] = 2.0 * radius[i] - pos[i, 2]
         t += dt
         steps += 1
     wrap_positions(pos, image, lo, length, periodic)
@@ -140,7 +145,9 @@ def run_case(case: dict) -> dict:
     dt0 = case["dt_reduced"] * a * a / D
     pos = np.ascontiguousarray(pos)
     stuck, t, steps = _bd_deposit(pos, np.ascontiguousarray(rad), a, gamma, kT, f_field, t_end, dt0, nfp, cp,
-                                  np.array([side, side, 10 * height]), 0.3 * a, int(case["seed"]), 20_000_000)
+                                  np.array([side, side, 10 * height]), 0.3 * a, int(case["seed"]), 20_000_000,
+                                  case.get("substrate", "stick") == "stick")
+    stuck = stuck if case.get("substrate", "stick") == "stick" else pos[:, 2] < rad * 1.05
     # deposit: everything below the top surface that has arrived
     z = pos[:, 2]
     arrived = z < np.quantile(z, 0.98) + 4 * a
@@ -169,6 +176,9 @@ def add_arguments(p):
     p.add_argument("--a-over-lambda", type=float, nargs="+", default=None,
                    help="radius / Debye length values (default 2 5 10)")
     p.add_argument("--particles", type=int, default=None, help="particles per deposit (default 300)")
+    p.add_argument("--substrate", choices=("stick", "contact"), default="stick",
+                   help="stick: particles stick on first contact with the substrate (default); "
+                        "contact: a hard frictionless substrate (particles stay laterally mobile)")
 
 
 def cases_for(args) -> list[dict]:
@@ -188,7 +198,8 @@ def cases_for(args) -> list[dict]:
     for al in als:
         for pe in pes:
             for r in range(reps):
-                out.append(dict(DEFAULTS, pe=pe, a_over_lambda=al, n_particles=n, seed=args.seed * 10007 + k, rep=r))
+                out.append(dict(DEFAULTS, pe=pe, a_over_lambda=al, n_particles=n, seed=args.seed * 10007 + k, rep=r,
+                                substrate=args.substrate))
                 k += 1
     return out
 
