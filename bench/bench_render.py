@@ -99,6 +99,10 @@ def case(name: str, quick: bool) -> dict:
         tab = _table(50, F, 512, 512, zspan=1e-6)
         n, first, rest = _consume(render_frames(tab, (512, 512), camera=Camera(photons=2e4, background=1000.0),
                                                 brightfield=True, seed=1))
+    elif name == "512x512, 50 particles, coherent brightfield":
+        tab = _table(50, F, 512, 512, zspan=1e-6)
+        n, first, rest = _consume(render_frames(tab, (512, 512), camera=Camera(photons=3000.0, background=1000.0),
+                                                brightfield="coherent", seed=1))
     elif name == "2560x2160 movie to TIFF, 200 particles":
         tab = _table(200, F, 2160, 2560)
         with tempfile.TemporaryDirectory(dir=os.environ.get("BENCH_TMP")) as d:
@@ -125,6 +129,7 @@ CASES = [
     "512x512, 50 particles, z +-3 um, astigmatism",
     "512x512, 50 particles, motion blur 8",
     "512x512, 50 particles, brightfield",
+    "512x512, 50 particles, coherent brightfield",
     "calibration +-60 um / 2 um, 64x64 (seed default)",
     "2560x2160 movie to TIFF, 200 particles",
 ]

@@ -542,3 +542,38 @@ def test_poisson_sampler_is_exact_for_every_kind_of_pixel(B):
         assert abs(x[sl].mean() - mu) < 5 * np.sqrt(mu / (3 * m)), (lv, x[sl].mean(), mu)
         assert abs(x1[sl].var() - mu) < 5 * mu * np.sqrt(2 / m) + 5 * np.sqrt(mu / m), (lv, x1[sl].var(), mu)
         assert np.all(x1[sl] == np.round(x1[sl])) and x1[sl].min() >= 0
+
+
+def test_coherent_brightfield_contrast_follows_the_scatter_phase():
+    """B |1 + sigma a|^2: a weak phase object (phase pi/2) is invisible in focus and has opposite
+    contrast above and below focus; an extinction (phase pi) is dark in focus and symmetric in z."""
+    cam = Camera(photons=300.0, background=1000.0)
+    zs = np.array([-0.6e-6, 0.0, 0.6e-6])
+    f = np.zeros(3, int)
+    t = make_table(f, f * 0.1, np.arange(3), (60 + 120 * np.arange(3)) * PX, np.full(3, 60 * PX), zs,
+                   meta={"frame_interval": 0.1})
+
+    def centres(phase):
+        img = next(expected_frames(t, (120, 360), None, cam, brightfield="coherent", scatter_phase=phase))
+        return img[60, [60, 180, 300]] - cam.background, img
+
+    (below, focus, above), _ = centres(np.pi / 2)
+    # in focus the interference term vanishes: only the scattered intensity |sigma a|^2 B is left
+    fluo = next(expected_frames(t, (120, 360), None, Camera(photons=300.0, background=0.0)))[60, [60, 180, 300]]
+    assert focus == pytest.approx(fluo[1], rel=1e-3)
+    assert (below - fluo[0]) * (above - fluo[2]) < 0 and abs(below - fluo[0]) > 3 * fluo[1]
+    (below, focus, above), img = centres(np.pi)
+    assert focus < -0.2 * cam.background
+    assert below == pytest.approx(above, rel=1e-3)
+    # coherent calibration pages equal the movie rendering at the same defocus
+    from sim.render.calibration import calibration_images
+
+    page = next(calibration_images([0.6e-6], (120, 120), None, cam, position=(60, 60), brightfield="coherent",
+                                   noise=False, scatter_phase=np.pi))
+    np.testing.assert_allclose(page[40:81, 40:81], img[40:81, 280:321], rtol=0, atol=2e-3 * cam.background)
+    from ptrack.errors import UserError
+
+    with pytest.raises(UserError):
+        list(render_frames(t, (120, 360), camera=Camera(background=0.0), brightfield="coherent"))
+    with pytest.raises(UserError):
+        list(render_frames(t, (120, 360), brightfield="darkfield"))

@@ -53,7 +53,7 @@ def run(a) -> int:
     else:
         shape = tuple(a.shape)
     paths = render_movie(table, out, shape, optics, camera, focal_plane=a.focal_plane, brightfield=a.brightfield,
-                         motion_blur_substeps=a.motion_blur, seed=a.seed, radius=a.radius,
+                         motion_blur_substeps=a.motion_blur, seed=a.seed, radius=a.radius, scatter_phase=a.scatter_phase,
                          compression="zlib" if a.compress else None,
                          extra_params={"command": "ptrack render " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["render"] else None,
                                        "input": str(a.trajectories)})

@@ -32,7 +32,8 @@ def run(a) -> int:
     optics, camera = optics_camera_from_args(a)
     paths = render_calibration(out, a.z_range[0], a.z_range[1], a.z_step, shape=tuple(a.shape), optics=optics,
                                camera=camera, focal_plane=a.focal_plane, radius=a.radius or 0.0,
-                               brightfield=a.brightfield, seed=a.seed, compression="zlib" if a.compress else None)
+                               brightfield=a.brightfield, seed=a.seed, compression="zlib" if a.compress else None,
+                               scatter_phase=a.scatter_phase)
     z = np.loadtxt(paths["z"], delimiter=",", skiprows=1)[:, 1].reshape(-1)
     pages = spread_indices(len(z), 12)
     png = save_montage(preview_pages(paths["stack"], pages), [f"z = {z[k] * 1e6:+.2f} um" for k in pages],

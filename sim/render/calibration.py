@@ -48,13 +48,17 @@ def calibration_heights(z_min: float, z_max: float, z_step: float) -> np.ndarray
 
 
 def calibration_images(z, shape=(64, 64), optics: Optics | None = None, camera: Camera | None = None,
-                       focal_plane: float = 0.0, radius: float = 0.0, position=None, brightfield: bool = False,
-                       noise: bool = True, seed=0):
+                       focal_plane: float = 0.0, radius: float = 0.0, position=None, brightfield=False,
+                       noise: bool = True, seed=0, scatter_phase: float = 2.5):
     """Yield one calibration image per height in ``z`` (uint16 if ``noise``, else expected photons as float64).
 
     ``position``: (x_px, y_px) of the particle; default the frame centre
     ``((W - 1) / 2, (H - 1) / 2)`` rounded down to a whole pixel.
+    ``brightfield``, ``scatter_phase``: as in :func:`sim.render.render_frames`.
     """
+    from .movie import _brightfield_mode
+
+    mode = _brightfield_mode(brightfield)
     optics = optics or Optics()
     camera = camera or Camera()
     H, W = (int(v) for v in shape)
@@ -80,12 +84,20 @@ def calibration_images(z, shape=(64, 64), optics: Optics | None = None, camera: 
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     import scipy.fft as sfft
 
+    if mode == "coherent" and not camera.background > 0:
+        raise UserError("coherent brightfield needs a bright field: camera.background = 0",
+                        "give the illumination as background photons per pixel (> 0)")
     for d in dz:
-        otf = otf_planes(optics, pixel, n, [d])[0] * ramp * camera.photons
+        if mode == "coherent":
+            o, re, im = otf_planes(optics, pixel, n, [d], field=True)
+            mag = 2.0 * np.sqrt(camera.background * camera.photons)
+            otf = (o[0] * camera.photons + re[0] * mag * np.cos(scatter_phase) - im[0] * mag * np.sin(scatter_phase)) * ramp
+        else:
+            otf = otf_planes(optics, pixel, n, [d])[0] * ramp * camera.photons
         pat = sfft.irfft2(otf, s=(n, n), workers=1)
         img = np.full((H, W), float(camera.background))
-        _add_patches(img, pat[None], np.array([iy - c]), np.array([ix - c]), -1.0 if brightfield else 1.0)
-        if brightfield:
+        _add_patches(img, pat[None], np.array([iy - c]), np.array([ix - c]), -1.0 if mode == "absorption" else 1.0)
+        if mode != "fluorescence":
             np.maximum(img, 0.0, out=img)
         yield expose(img, camera, rng) if noise else img
 
@@ -101,8 +113,8 @@ def _with_bar(gen, total):
 
 def render_calibration(out_dir, z_min: float = -60e-6, z_max: float = 60e-6, z_step: float = 2e-6, shape=(64, 64),
                        optics: Optics | None = None, camera: Camera | None = None, focal_plane: float = 0.0,
-                       radius: float = 0.0, position=None, brightfield: bool = False, seed=0,
-                       compression: str | None = None, progress: bool = True) -> dict:
+                       radius: float = 0.0, position=None, brightfield=False, seed=0,
+                       compression: str | None = None, progress: bool = True, scatter_phase: float = 2.5) -> dict:
     """Write a defocus calibration stack: ``out_dir/calib.tif`` and ``out_dir/calib_z.csv``.
 
     Parameters
@@ -120,7 +132,10 @@ def render_calibration(out_dir, z_min: float = -60e-6, z_max: float = 60e-6, z_s
         Particle radius, m.
     position : (x_px, y_px), optional
         Particle position in the page (default: the centre pixel).
-    brightfield : bool
+    brightfield : bool or str
+        As in :func:`sim.render.render_frames` (False, True/'absorption', 'coherent').
+    scatter_phase : float
+        rad, coherent brightfield only.
     seed : int or Generator
     compression : str, optional
         e.g. ``"zlib"``.
@@ -149,7 +164,8 @@ def render_calibration(out_dir, z_min: float = -60e-6, z_max: float = 60e-6, z_s
         "z_max": float(z[-1]), "z_unit": "m", "focal_plane": float(focal_plane), "x_px": position[0],
         "y_px": position[1], "source": "sim.render.render_calibration",
     }
-    gen = calibration_images(z, (H, W), optics, camera, focal_plane, radius, position, brightfield, True, seed)
+    gen = calibration_images(z, (H, W), optics, camera, focal_plane, radius, position, brightfield, True, seed,
+                             scatter_phase)
     if progress:
         gen = _with_bar(gen, len(z))
     px_um = pixel * 1e6
@@ -165,7 +181,8 @@ def render_calibration(out_dir, z_min: float = -60e-6, z_max: float = 60e-6, z_s
         fh.write("page,z\n")
         for i, zi in enumerate(z):
             fh.write(f"{i},{float(zi)!r}\n")
-    params = {**info, "n_planes": len(z), "shape": [H, W], "radius": radius, "brightfield": bool(brightfield),
+    params = {**info, "n_planes": len(z), "shape": [H, W], "radius": radius, "brightfield": str(brightfield) if brightfield else False,
+              "scatter_phase": scatter_phase if brightfield == "coherent" else None,
               "seed": seed if not isinstance(seed, np.random.Generator) else None,
               "optics": optics.to_dict(), "camera": camera.to_dict(), "compression": compression}
     ppath = out_dir / "calib_params.json"

@@ -143,12 +143,14 @@ class _Renderer:
         ex = np.exp(-2j * np.pi * self.fx[None, :] * (c + dx)[:, None]).astype(np.complex64)
         return ey, ex
 
-    def patches(self, x_px, y_px, defocus, radius, photons, sub=None):
+    def patches(self, x_px, y_px, defocus, radius, photons, sub=None, field_amp=None):
         """Patches (K, n, n) of expected photons and their top-left frame indices.
 
         ``sub``: optional list of (weight, x_px, y_px, defocus) sub-positions for
         motion blur (weights sum to 1); the patch is anchored at the rounded
-        (x_px, y_px).
+        (x_px, y_px). ``field_amp``: (c_re, c_im) per particle, the weights of
+        the real and imaginary parts of the amplitude PSF (coherent
+        brightfield's interference term), added to ``photons`` x intensity PSF.
         """
         ix = np.rint(x_px).astype(np.int64)
         iy = np.rint(y_px).astype(np.int64)
@@ -162,6 +164,9 @@ class _Renderer:
             i0, wz = self.plane_weights(zs)
             ey, ex = self.ramps(ys - iy, xs - ix)
             _otf_accumulate(self.stack.otf, i0, wz, ey, ex, photons * w, otf)
+            if field_amp is not None:
+                _otf_accumulate(self.stack.field_re, i0, wz, ey, ex, field_amp[0] * w, otf)
+                _otf_accumulate(self.stack.field_im, i0, wz, ey, ex, field_amp[1] * w, otf)
         for r in np.unique(radius):
             if r > 0:
                 sel = radius == r
@@ -189,7 +194,8 @@ def frame_interval_of(table: pd.DataFrame) -> float:
 class _Scene:
     """Per-row arrays prepared once for a table."""
 
-    def __init__(self, table, shape, optics, camera, focal_plane, motion_blur_substeps, radius):
+    def __init__(self, table, shape, optics, camera, focal_plane, motion_blur_substeps, radius,
+                 brightfield=False, scatter_phase: float = 2.5):
         table = validate(table.copy())
         self.table = table
         try:
@@ -206,6 +212,14 @@ class _Scene:
             raise UserError(f"focal_plane = {focal_plane!r} is not finite", "give the focal-plane height in m")
         self.pixel = sample_pixel_size(self.optics, self.camera.pixel_pitch)
         check_sampling(self.optics, self.pixel)
+        self.mode = _brightfield_mode(brightfield)
+        if self.mode == "coherent":
+            if not self.camera.background > 0:
+                raise UserError("coherent brightfield needs a bright field: camera.background = 0",
+                                "give the illumination as background photons per pixel (> 0)")
+            if not math.isfinite(float(scatter_phase)):
+                raise UserError(f"scatter_phase = {scatter_phase!r} is not finite", "give the phase in radians")
+        self.scatter_phase = float(scatter_phase)
         S = int(motion_blur_substeps)
         if S < 0:
             raise UserError(f"motion_blur_substeps = {motion_blur_substeps!r} is negative", "give 0 (no blur) or a positive number")
@@ -302,7 +316,8 @@ class _Scene:
             n = int(ladder[k // 2])
             # all stacks together stay within ~512 MB (plane spacing coarsened if needed)
             st = build_psf_stack(o, self.pixel, float(lo_z[sel].min()), float(hi_z[sel].max()),
-                                 float(self.radius[sel].max()), n=n, max_bytes=512e6 / len(keys))
+                                 float(self.radius[sel].max()), n=n, max_bytes=512e6 / len(keys),
+                                 with_field=self.mode == "coherent")
             self.renderers.append(_Renderer(st))
         if not self.renderers:  # empty table: one in-focus class so that frames can still be drawn
             self.renderers.append(_Renderer(build_psf_stack(o, self.pixel, 0.0, 0.0, 0.0)))
@@ -326,7 +341,14 @@ class _Scene:
             out.append((w, self.x_px[idx] + vx * tau, self.y_px[idx] + vy * tau, self.defocus[idx] + vz * tau))
         return out
 
-    def expected(self, idx, brightfield: bool, out=None):
+    def field_amplitudes(self, rows):
+        """Weights of Re a and Im a in 2 B Re(sigma a), sigma = sqrt(photons / B) exp(i phase)."""
+        B = float(self.camera.background)
+        mag = 2.0 * np.sqrt(B * self.photons[rows])
+        return (np.ascontiguousarray(mag * math.cos(self.scatter_phase)),
+                np.ascontiguousarray(-mag * math.sin(self.scatter_phase)))
+
+    def expected(self, idx, brightfield=None, out=None):
         """Expected photons per pixel (H, W) for the rows ``idx`` of one frame, and each row's peak photons.
 
         ``out``: an (H, W) float64 array to fill (reused frame after frame), else a new one.
@@ -338,7 +360,9 @@ class _Scene:
             img = out
             img.fill(float(self.camera.background))
         peaks = np.zeros(len(idx))
-        sign = -1.0 if brightfield else 1.0
+        mode = self.mode if brightfield is None else _brightfield_mode(brightfield)
+        coherent = mode == "coherent"
+        sign = -1.0 if mode == "absorption" else 1.0
         cls = self.row_class[idx]
         far = np.nonzero(cls < 0)[0]
         if far.size:
@@ -363,26 +387,40 @@ class _Scene:
                 loc = kidx[s:s + per]
                 rows = idx[loc]
                 pat, y0, x0 = renderer.patches(self.x_px[rows], self.y_px[rows], self.defocus[rows],
-                                               self.radius[rows], self.photons[rows], self.sub_positions(rows))
-                peaks[loc] = pat.reshape(len(rows), -1).max(axis=1)
+                                               self.radius[rows], self.photons[rows], self.sub_positions(rows),
+                                               self.field_amplitudes(rows) if coherent else None)
+                flat = pat.reshape(len(rows), -1)
+                peaks[loc] = np.abs(flat).max(axis=1) if coherent else flat.max(axis=1)
                 _add_patches(img, pat, y0, x0, sign)
-        if brightfield:
+        if mode != "fluorescence":
             np.maximum(img, 0.0, out=img)
         return img, peaks
 
 
-def _iter_frames(scene: _Scene, brightfield: bool, seed):
+def _brightfield_mode(brightfield) -> str:
+    """False -> 'fluorescence'; True or 'absorption' -> 'absorption'; 'coherent' -> 'coherent'."""
+    if brightfield is False or brightfield is None:
+        return "fluorescence"
+    if brightfield is True:
+        return "absorption"
+    if isinstance(brightfield, str) and brightfield in ("absorption", "coherent"):
+        return brightfield
+    raise UserError(f"brightfield = {brightfield!r} is not understood",
+                    "give False (fluorescence), True / 'absorption' or 'coherent'")
+
+
+def _iter_frames(scene: _Scene, brightfield, seed):
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     work = Workspace()
     buf = np.empty(scene.shape)
     for f, idx in zip(scene.frames, scene.groups):
-        img, peaks = scene.expected(idx, brightfield, out=buf)
+        img, peaks = scene.expected(idx, out=buf)
         yield int(f), idx, expose(img, scene.camera, rng, work), peaks
 
 
 def render_frames(table: pd.DataFrame, shape=(256, 256), optics: Optics | None = None, camera: Camera | None = None,
-                  focal_plane: float = 0.0, brightfield: bool = False, motion_blur_substeps: int = 0, seed=0,
-                  radius: float | None = None):
+                  focal_plane: float = 0.0, brightfield=False, motion_blur_substeps: int = 0, seed=0,
+                  radius: float | None = None, scatter_phase: float = 2.5):
     """Render a trajectories table as camera frames.
 
     Parameters
@@ -397,29 +435,40 @@ def render_frames(table: pd.DataFrame, shape=(256, 256), optics: Optics | None =
     camera : Camera, optional
     focal_plane : float
         Height of the focal plane, m; a particle's defocus is ``z - focal_plane``.
-    brightfield : bool
-        Dark particles on a bright background (``camera.background`` photons
-        per pixel minus ``photons`` per particle spread as the PSF).
+    brightfield : bool or str
+        False: fluorescence (``photons`` per particle on ``camera.background``).
+        True or ``"absorption"``: dark particles on a bright field
+        (``camera.background`` photons per pixel minus ``photons`` per
+        particle spread as the intensity PSF). ``"coherent"``: coherent
+        brightfield, ``B |1 + sigma a|^2`` with ``a`` the amplitude PSF
+        (``sum |a|^2 = 1``), ``B = camera.background`` and
+        ``sigma = sqrt(photons / B) exp(i scatter_phase)``: the scattered light
+        interferes with the illumination, so the contrast changes with defocus
+        (dark in focus for phases near pi, bright/dark centres on the two
+        sides of focus) as in real brightfield images of colloids.
     motion_blur_substeps : int
         0: instantaneous positions; S > 0: average of S sub-positions over the exposure.
     seed : int or numpy.random.Generator
         Noise seed: same seed, same frames.
     radius : float, optional
         Particle radius for all rows, m (overrides a ``radius`` column; default 0 = point source).
+    scatter_phase : float
+        Phase of the scattered field relative to the illumination, rad
+        (coherent brightfield only; pi = pure extinction, pi/2 = weak phase object).
 
     Yields
     ------
     ndarray (H, W), uint16
         One frame per sorted unique ``frame`` of the table.
     """
-    scene = _Scene(table, shape, optics, camera, focal_plane, motion_blur_substeps, radius)
+    scene = _Scene(table, shape, optics, camera, focal_plane, motion_blur_substeps, radius, brightfield, scatter_phase)
     for _, _, img, _ in _iter_frames(scene, brightfield, seed):
         yield img
 
 
 def expected_frames(table: pd.DataFrame, shape=(256, 256), optics: Optics | None = None, camera: Camera | None = None,
-                    focal_plane: float = 0.0, brightfield: bool = False, motion_blur_substeps: int = 0,
-                    radius: float | None = None):
+                    focal_plane: float = 0.0, brightfield=False, motion_blur_substeps: int = 0,
+                    radius: float | None = None, scatter_phase: float = 2.5):
     """Noise-free expected photons per pixel (float64 frames), same geometry as :func:`render_frames`.
 
     Yields
@@ -429,9 +478,9 @@ def expected_frames(table: pd.DataFrame, shape=(256, 256), optics: Optics | None
         sorted unique ``frame`` of the table; the camera turns them into ADU
         with mean ``gain * QE * photons + offset``.
     """
-    scene = _Scene(table, shape, optics, camera, focal_plane, motion_blur_substeps, radius)
+    scene = _Scene(table, shape, optics, camera, focal_plane, motion_blur_substeps, radius, brightfield, scatter_phase)
     for idx in scene.groups:
-        yield scene.expected(idx, brightfield)[0]
+        yield scene.expected(idx)[0]
 
 
 def _tiff_metadata(pixel: float, frame_interval: float, info: dict) -> dict:
@@ -439,8 +488,8 @@ def _tiff_metadata(pixel: float, frame_interval: float, info: dict) -> dict:
 
 
 def render_movie(table: pd.DataFrame, out_dir, shape=(256, 256), optics: Optics | None = None,
-                 camera: Camera | None = None, focal_plane: float = 0.0, brightfield: bool = False,
-                 motion_blur_substeps: int = 0, seed=0, radius: float | None = None,
+                 camera: Camera | None = None, focal_plane: float = 0.0, brightfield=False,
+                 motion_blur_substeps: int = 0, seed=0, radius: float | None = None, scatter_phase: float = 2.5,
                  compression: str | None = None, extra_params: dict | None = None, progress: bool = True) -> dict:
     """Render a table to ``out_dir/movie.tif`` (+ ``truth.parquet``, ``params.json``).
 
@@ -487,7 +536,7 @@ def render_movie(table: pd.DataFrame, out_dir, shape=(256, 256), optics: Optics 
         raise UserError(f"output path {out_dir} exists and is not a directory", "give a directory for --out")
     if len(table) == 0:
         raise UserError("trajectories table is empty", "give a table with at least one row")
-    scene = _Scene(table, shape, optics, camera, focal_plane, motion_blur_substeps, radius)
+    scene = _Scene(table, shape, optics, camera, focal_plane, motion_blur_substeps, radius, brightfield, scatter_phase)
     tbl = scene.table
     f0 = int(scene.frames[0])
     nf = int(scene.frames[-1]) - f0 + 1
@@ -514,7 +563,7 @@ def render_movie(table: pd.DataFrame, out_dir, shape=(256, 256), optics: Optics 
                 idx = by_frame.get(f)
                 if idx is None:
                     idx = np.zeros(0, dtype=np.int64)
-                img, peaks = scene.expected(idx, brightfield, out=buf)
+                img, peaks = scene.expected(idx, out=buf)
                 signal[idx] = peaks * gain_qe
                 yield expose(img, scene.camera, rng, work)
                 if bar is not None:
@@ -525,7 +574,8 @@ def render_movie(table: pd.DataFrame, out_dir, shape=(256, 256), optics: Optics 
 
     info = {
         "pixel_size": pixel, "pixel_size_unit": "m", "frame_interval": fi, "frame_interval_unit": "s",
-        "shape": [H, W], "n_frames": nf, "focal_plane": scene.focal_plane, "brightfield": bool(brightfield),
+        "shape": [H, W], "n_frames": nf, "focal_plane": scene.focal_plane, "brightfield": scene.mode != "fluorescence",
+        "mode": scene.mode,
         "source": "sim.render.render_movie",
     }
     params = {
@@ -533,6 +583,7 @@ def render_movie(table: pd.DataFrame, out_dir, shape=(256, 256), optics: Optics 
         "frame_offset": f0,
         "exposure": scene.exposure,
         "motion_blur_substeps": scene.substeps,
+        "scatter_phase": scene.scatter_phase if scene.mode == "coherent" else None,
         "seed": seed if not isinstance(seed, np.random.Generator) else None,
         "optics": scene.optics.to_dict(),
         "camera": scene.camera.to_dict(),

@@ -187,7 +187,7 @@ def _amp_grid_factor(optics: Optics, pixel: float, n: int, min_pupil_samples: fl
     return max(1, int(math.ceil(min_pupil_samples / per)))
 
 
-def otf_planes(optics: Optics, pixel: float, n: int, defocus, dtype=np.complex128) -> np.ndarray:
+def otf_planes(optics: Optics, pixel: float, n: int, defocus, dtype=np.complex128, field: bool = False):
     """Pixel-integrated optical transfer functions for the given defocus values.
 
     Parameters
@@ -202,6 +202,10 @@ def otf_planes(optics: Optics, pixel: float, n: int, defocus, dtype=np.complex12
 
     dtype : numpy dtype
         complex128 (default) or complex64 (half the memory of a large stack).
+    field : bool
+        Also return the transforms of the amplitude PSF (for coherent
+        brightfield): ``rfft2`` of the pixel-averaged real and imaginary parts
+        of the field ``a``, normalised so that ``sum |a|^2 = 1`` over pixels.
 
     Returns
     -------
@@ -211,6 +215,7 @@ def otf_planes(optics: Optics, pixel: float, n: int, defocus, dtype=np.complex12
         The intensity is computed on an m-times larger grid (fine pupil
         sampling) and wrapped onto the n-grid by taking every m-th frequency,
         which conserves flux exactly.
+    (re, im) : two more such arrays, only if ``field``.
     """
     defocus = np.atleast_1d(np.asarray(defocus, dtype=np.float64))
     m = _amp_grid_factor(optics, pixel, n)
@@ -224,6 +229,9 @@ def otf_planes(optics: Optics, pixel: float, n: int, defocus, dtype=np.complex12
     rpx = np.fft.rfftfreq(n)
     pix = np.sinc(fpx)[:, None] * np.sinc(rpx)[None, :]
     out = np.empty((len(defocus), n, n // 2 + 1), dtype=dtype)
+    if field:
+        out_re = np.empty_like(out)
+        out_im = np.empty_like(out)
     pupil = np.zeros((big, big), dtype=np.complex128)
     for i, dz in enumerate(defocus):
         pupil[sel] = amp_mask * np.exp(1j * (kz_sel * dz + base_phase))
@@ -231,8 +239,14 @@ def otf_planes(optics: Optics, pixel: float, n: int, defocus, dtype=np.complex12
         inten = amp.real ** 2 + amp.imag ** 2
         otf = sfft.rfft2(inten, workers=1)
         otf = otf[::m, ::m]
-        otf = otf / otf[0, 0].real
-        out[i] = otf * pix
+        norm = otf[0, 0].real
+        out[i] = otf / norm * pix
+        if field:
+            a = amp / math.sqrt(norm)  # sum |a|^2 = 1 on the pixel grid
+            out_re[i] = sfft.rfft2(a.real, workers=1)[::m, ::m] * pix
+            out_im[i] = sfft.rfft2(a.imag, workers=1)[::m, ::m] * pix
+    if field:
+        return out, out_re, out_im
     return out
 
 
@@ -272,6 +286,8 @@ class PSFStack:
     pixel: float
     n: int
     kr: np.ndarray = field(repr=False, default=None)  # |k| in cycles/m on the rfft grid
+    field_re: np.ndarray | None = field(repr=False, default=None)  # amplitude PSF, real part (coherent brightfield)
+    field_im: np.ndarray | None = field(repr=False, default=None)
 
     def __post_init__(self):
         if self.kr is None:
@@ -285,23 +301,27 @@ class PSFStack:
 
 
 def build_psf_stack(optics: Optics, pixel: float, zmin: float, zmax: float, max_radius: float = 0.0,
-                    n: int | None = None, max_bytes: float = 256e6, progress=None) -> PSFStack:
+                    n: int | None = None, max_bytes: float = 256e6, with_field: bool = False) -> PSFStack:
     """Precompute OTF planes covering defocus ``[zmin, zmax]`` (m).
 
     The plane spacing is :attr:`Optics.psf_z_step`, coarsened if the stack
-    would exceed ``max_bytes`` (very large defocus ranges).
+    would exceed ``max_bytes`` (very large defocus ranges). ``with_field``:
+    also the amplitude-PSF planes (coherent brightfield; 3x the memory).
     """
     check_sampling(optics, pixel)
     if n is None:
         n = patch_size(optics, pixel, max(abs(zmin), abs(zmax)), max_radius)
     step = float(optics.psf_z_step)
-    plane_bytes = n * (n // 2 + 1) * 8
+    plane_bytes = n * (n // 2 + 1) * 8 * (3 if with_field else 1)
     span = max(zmax - zmin, 0.0)
     nz = int(math.floor(span / step + 1e-9)) + 2
     if nz * plane_bytes > max_bytes:
         nz = max(2, int(max_bytes // plane_bytes))
         step = span / (nz - 1) if span > 0 else step
     zs = zmin + step * np.arange(nz)
+    if with_field:
+        otf, re, im = otf_planes(optics, pixel, n, zs, dtype=np.complex64, field=True)
+        return PSFStack(z0=float(zmin), dz=step, otf=otf, pixel=pixel, n=n, field_re=re, field_im=im)
     otf = otf_planes(optics, pixel, n, zs, dtype=np.complex64)
     return PSFStack(z0=float(zmin), dz=step, otf=otf, pixel=pixel, n=n)
 

@@ -38,7 +38,12 @@ def add_optics_camera_arguments(p: argparse.ArgumentParser) -> None:
     c.add_argument("--gain", type=float, default=_CAM.gain, help=f"gain, ADU per e- (default {_CAM.gain})")
     c.add_argument("--offset", type=float, default=_CAM.offset, help=f"offset, ADU (default {_CAM.offset:g})")
     c.add_argument("--bit-depth", type=int, default=_CAM.bit_depth, help=f"bit depth (default {_CAM.bit_depth})")
-    c.add_argument("--brightfield", action="store_true", help="dark particles on a bright background")
+    c.add_argument("--brightfield", nargs="?", const="absorption", default=False, choices=["absorption", "coherent"],
+                   help="brightfield instead of fluorescence: 'absorption' (default when given without a value: "
+                        "dark particles on a bright field) or 'coherent' (scattered light interfering with the "
+                        "illumination: contrast inverts across focus); --background is the illumination")
+    c.add_argument("--scatter-phase", type=float, default=2.5,
+                   help="coherent brightfield: phase of the scattered field, rad (pi: extinction, pi/2: phase object; default 2.5)")
     c.add_argument("--compress", action="store_true", help="lossless zlib compression of the TIFF")
     c.add_argument("--seed", type=int, default=0, help="noise seed (same seed, byte-identical output; default 0)")
 
