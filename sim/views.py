@@ -70,11 +70,13 @@ def snapshots_png(path, frames, box=None, vmax=None):
     """Several frames side by side; ``frames`` = list of (t, pos, radius, cn)."""
     plt = _mpl()
     k = len(frames)
-    fig = plt.figure(figsize=(4.2 * k, 4.4))
+    ncol = 2 if k == 4 else k
+    nrow = (k + ncol - 1) // ncol
+    fig = plt.figure(figsize=(5.2 * ncol, 4.6 * nrow))
     vmax = vmax if vmax is not None else max([12] + [int(np.max(f[3])) for f in frames if len(f[3])])
     sc = None
     for a, (t, pos, radius, cn) in enumerate(frames):
-        ax = fig.add_subplot(1, k, a + 1, projection="3d")
+        ax = fig.add_subplot(nrow, ncol, a + 1, projection="3d")
         sc = _draw(ax, np.asarray(pos), np.asarray(radius), np.asarray(cn), vmax, box, f"t = {t:.3g} s")
     if sc is not None:
         fig.colorbar(sc, ax=fig.axes, shrink=0.6, label="coordination number")
