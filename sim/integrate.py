@@ -270,7 +270,9 @@ def trapezoidal_kernel(pos, vel, radius, mass, gamma, charge, fconst, vf, B, rho
 
     ``fconst`` already holds q E and gravity; the drag (Stokes if ``stokes``,
     else the piecewise law) and q v x B are evaluated here; the Brownian force
-    (variance 2 gamma kT / dt) is drawn once per step and held over it.
+    (variance 2 gamma kT / dt with the Stokes gamma) is drawn once per step and
+    held over it. (Fluctuation-dissipation is exact only for the linear,
+    Stokes drag; at Re > 1 the thermal force is negligible against the drive.)
     """
     n = pos.shape[0]
     failures = 0

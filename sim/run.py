@@ -236,5 +236,9 @@ def run_scene(scene: Scene, out_dir, seed=None, progress: bool = True, resume: b
     writer.close()
     if stepper.failures:
         log.warning("trapezoidal fixed-point iteration did not converge in %d steps", stepper.failures)
+    resolved["run"] = {"wall_time_s": time.perf_counter() - t0, "fixed_point_failures": stepper.failures,
+                       "particle_steps": n * n_out * choice.steps_per_output}
+    with atomic_output(scene_json, "w") as fh:
+        json.dump(resolved, fh, indent=2, default=float)
     return RunResult(trajectories=traj_path, scene_json=scene_json, choice=choice, n_frames=n_out + 1,
                      wall_time_s=time.perf_counter() - t0, state=state)
