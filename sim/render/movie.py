@@ -575,7 +575,6 @@ def render_movie(table: pd.DataFrame, out_dir, shape=(256, 256), optics: Optics 
     info = {
         "pixel_size": pixel, "pixel_size_unit": "m", "frame_interval": fi, "frame_interval_unit": "s",
         "shape": [H, W], "n_frames": nf, "focal_plane": scene.focal_plane, "brightfield": scene.mode != "fluorescence",
-        "mode": scene.mode,
         "source": "sim.render.render_movie",
     }
     params = {
@@ -583,6 +582,7 @@ def render_movie(table: pd.DataFrame, out_dir, shape=(256, 256), optics: Optics 
         "frame_offset": f0,
         "exposure": scene.exposure,
         "motion_blur_substeps": scene.substeps,
+        "mode": scene.mode,
         "scatter_phase": scene.scatter_phase if scene.mode == "coherent" else None,
         "seed": seed if not isinstance(seed, np.random.Generator) else None,
         "optics": scene.optics.to_dict(),
