@@ -137,7 +137,7 @@ def _classify(ph, scale, B, eps, tiny, cls):
                 cls[i] = 4
                 n4 += 1
                 r4 += r
-            elif r <= 40.0:
+            elif r <= _SMALL_MEAN:
                 cls[i] = 1
                 n1 += 1
             else:

@@ -20,7 +20,9 @@ and integrated over the pixel area, then added to the frame; the camera model
 (:mod:`sim.render.camera`) adds shot and read noise. Optional motion blur
 averages ``motion_blur_substeps`` sub-positions spread over the exposure
 (centred on the frame time, positions interpolated linearly between the
-table's frames).
+table's frames). Brightfield: ``"absorption"`` (dark PSF-shaped dips in a
+bright field) or ``"coherent"`` (the amplitude PSF interfering with the
+illumination: rings and contrast inversion across focus).
 """
 from __future__ import annotations
 
@@ -409,7 +411,7 @@ def _brightfield_mode(brightfield) -> str:
                     "give False (fluorescence), True / 'absorption' or 'coherent'")
 
 
-def _iter_frames(scene: _Scene, brightfield, seed):
+def _iter_frames(scene: _Scene, seed):
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     work = Workspace()
     buf = np.empty(scene.shape)
@@ -462,7 +464,7 @@ def render_frames(table: pd.DataFrame, shape=(256, 256), optics: Optics | None =
         One frame per sorted unique ``frame`` of the table.
     """
     scene = _Scene(table, shape, optics, camera, focal_plane, motion_blur_substeps, radius, brightfield, scatter_phase)
-    for _, _, img, _ in _iter_frames(scene, brightfield, seed):
+    for _, _, img, _ in _iter_frames(scene, seed):
         yield img
 
 

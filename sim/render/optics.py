@@ -351,8 +351,10 @@ def psf_image(optics: Optics, pixel: float, defocus: float = 0.0, size: int = 64
     Returns
     -------
     ndarray (size*oversample, size*oversample)
-        Values that sum to 1 per camera pixel area: with ``oversample = 1``
-        and ``pixel_integrated`` the sum over a large enough image is 1.
+        Fraction of the source's light per camera-pixel area, sampled every
+        ``pixel / oversample``, the source at index ``(size // 2) * oversample``;
+        the values sum to ``oversample**2`` (to 1 for ``oversample = 1``), up to
+        the light outside the image, which wraps around.
     """
     size = int(size) + int(size) % 2
     n = size
@@ -372,6 +374,4 @@ def psf_image(optics: Optics, pixel: float, defocus: float = 0.0, size: int = 64
     big[:h, : h + 1] = otf[:h]
     big[N - h:, : h + 1] = otf[h:]
     # the Nyquist row/column of the n-grid is zero (band limit), so no splitting is needed
-    img = sfft.irfft2(big, s=(N, N)) * (oversample ** 2)
-    # shift so that the source (at fine index c*oversample) is at fine index (size//2)*oversample
-    return img
+    return sfft.irfft2(big, s=(N, N)) * (oversample ** 2)
