@@ -180,3 +180,12 @@ def test_interaction_sections_go_to_the_dem_engine(tmp_path, monkeypatch):
     with pytest.raises(UserError, match="contact.colour"):
         raw["contact"] = {"colour": 1}
         scene_from_dict(raw)
+
+
+def test_placement_dense_random_sequential_addition():
+    n, R, phi = 20_000, 1e-7, 0.25
+    L = (n * 4 / 3 * math.pi * R ** 3 / phi) ** (1 / 3)
+    pos, r = place_particles(n, R, 0.0, (0, 0, 0), (L, L, L), seed=2)
+    from scipy.spatial import cKDTree
+    pairs = cKDTree(pos).query_pairs(2 * R * (1 - 1e-12))
+    assert len(pairs) == 0
