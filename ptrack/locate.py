@@ -140,42 +140,184 @@ def _local_maxima_bg(img, bg, ds, thr, low, half, edge):
 
 
 @nb.njit(cache=True)
-def _hot_in_rois(raw, m3, bg, ds, rows, cols, half, thr):
+def _median9(buf):
+    # insertion sort of 9 values, return the middle one
+    for i in range(1, 9):
+        v = buf[i]
+        j = i - 1
+        while j >= 0 and buf[j] > v:
+            buf[j + 1] = buf[j]
+            j -= 1
+        buf[j + 1] = v
+    return buf[4]
+
+
+@nb.njit(cache=True)
+def _hot_in_rois(raw, bg, ds, rows, cols, half, thr):
     # pixels of the fit windows that stand alone: more than thr above their brightest neighbour and
     # more than 3x that neighbour's height above background. A diffraction-limited spot (sigma >= 0.8 px)
     # never does (its brightest neighbour holds >= 45 % of its peak); a hot pixel or cosmic ray does.
+    # Returns their coordinates and 3x3 medians (the replacement values).
     h, w = raw.shape
     bh, bw = bg.shape
     hr = []
     hc = []
+    hv = []
+    buf = np.empty(9)
     for k in range(rows.shape[0]):
         for r in range(max(1, rows[k] - half), min(h - 2, rows[k] + half) + 1):
             for c in range(max(1, cols[k] - half), min(w - 2, cols[k] + half) + 1):
                 v = float(raw[r, c])
                 mx = -1e300
+                n = 0
                 for dr in range(-1, 2):
                     for dc in range(-1, 2):
-                        if dr != 0 or dc != 0:
-                            u = float(raw[r + dr, c + dc])
-                            if u > mx:
-                                mx = u
+                        u = float(raw[r + dr, c + dc])
+                        buf[n] = u
+                        n += 1
+                        if (dr != 0 or dc != 0) and u > mx:
+                            mx = u
                 b = bg[min(r // ds, bh - 1), min(c // ds, bw - 1)]
                 if v - mx > thr and v - b > 3.0 * (mx - b):
                     hr.append(r)
                     hc.append(c)
-    return hr, hc
+                    hv.append(_median9(buf))
+    return hr, hc, hv
+
+
+@nb.njit(cache=True)
+def _smooth_tile(raw, r0, r1, c0, c1, kern, median, med, tmp, sm):
+    # Gaussian(kern)-filtered 3x3-median of raw over rows r0..r1, cols c0..c1 (inclusive) -> sm;
+    # indices outside the frame are clamped (replicated border)
+    h, w = raw.shape
+    kh = kern.shape[0] // 2
+    buf = np.empty(9)
+    nr = r1 - r0 + 1
+    nc = c1 - c0 + 1
+    for i in range(nr + 2 * kh):
+        r = min(max(r0 - kh + i, 0), h - 1)
+        for j in range(nc + 2 * kh):
+            c = min(max(c0 - kh + j, 0), w - 1)
+            if median:
+                n = 0
+                for dr in range(-1, 2):
+                    rr = min(max(r + dr, 0), h - 1)
+                    for dc in range(-1, 2):
+                        buf[n] = raw[rr, min(max(c + dc, 0), w - 1)]
+                        n += 1
+                med[i, j] = _median9(buf)
+            else:
+                med[i, j] = raw[r, c]
+    for i in range(nr + 2 * kh):
+        for j in range(nc):
+            acc = 0.0
+            for k in range(kern.shape[0]):
+                acc += kern[k] * med[i, j + k]
+            tmp[i, j] = acc
+    for i in range(nr):
+        for j in range(nc):
+            acc = 0.0
+            for k in range(kern.shape[0]):
+                acc += kern[k] * tmp[i + k, j]
+            sm[i, j] = acc
+
+
+@nb.njit(cache=True)
+def _tile_peaks(raw, boxes, kern, median, bg, ds, thr, half, edge):
+    # local maxima of the filtered frame inside each box (r0, r1, c0, c1, inclusive), tile by tile;
+    # a peak must exceed its block background by thr and be the maximum of its (2 half + 1)^2 window
+    h, w = raw.shape
+    bh, bw = bg.shape
+    kh = kern.shape[0] // 2
+    rows = []
+    cols = []
+    vals = []
+    for k in range(boxes.shape[0]):
+        br0, br1, bc0, bc1 = boxes[k, 0], boxes[k, 1], boxes[k, 2], boxes[k, 3]
+        r0 = br0 - half
+        c0 = bc0 - half
+        nr = br1 - br0 + 1 + 2 * half
+        nc = bc1 - bc0 + 1 + 2 * half
+        med = np.empty((nr + 2 * kh, nc + 2 * kh))
+        tmp = np.empty((nr + 2 * kh, nc))
+        sm = np.empty((nr, nc))
+        _smooth_tile(raw, r0, r0 + nr - 1, c0, c0 + nc - 1, kern, median, med, tmp, sm)
+        for i in range(half, nr - half):
+            r = r0 + i
+            if r < edge or r >= h - edge:
+                continue
+            for j in range(half, nc - half):
+                c = c0 + j
+                if c < edge or c >= w - edge:
+                    continue
+                v = sm[i, j]
+                b = bg[min(r // ds, bh - 1), min(c // ds, bw - 1)]
+                if v - b <= thr:
+                    continue
+                ok = True
+                for ii in range(i - half, i + half + 1):
+                    rr = r0 + ii
+                    if rr < 0 or rr >= h:
+                        continue
+                    for jj in range(j - half, j + half + 1):
+                        c2 = c0 + jj
+                        if c2 < 0 or c2 >= w:
+                            continue
+                        u = sm[ii, jj]
+                        if u > v or (u == v and (rr < r or (rr == r and c2 < c))):
+                            ok = False
+                            break
+                    if not ok:
+                        break
+                if ok:
+                    rows.append(r)
+                    cols.append(c)
+                    vals.append(v - b)
+    return rows, cols, vals
+
+
+@nb.njit(cache=True)
+def _tile_values(raw, cr, cc, kern, median, bg, ds, n_side):
+    # filtered values minus block background at n_side x n_side pixels around each (cr, cc): noise samples
+    h, w = raw.shape
+    bh, bw = bg.shape
+    kh = kern.shape[0] // 2
+    med = np.empty((n_side + 2 * kh, n_side + 2 * kh))
+    tmp = np.empty((n_side + 2 * kh, n_side))
+    sm = np.empty((n_side, n_side))
+    out = np.empty(cr.shape[0] * n_side * n_side)
+    n = 0
+    for k in range(cr.shape[0]):
+        _smooth_tile(raw, cr[k], cr[k] + n_side - 1, cc[k], cc[k] + n_side - 1, kern, median, med, tmp, sm)
+        for i in range(n_side):
+            for j in range(n_side):
+                r = min(cr[k] + i, h - 1)
+                c = min(cc[k] + j, w - 1)
+                out[n] = sm[i, j] - bg[min(r // ds, bh - 1), min(c // ds, bw - 1)]
+                n += 1
+    return out
 
 
 def detect_raw(frame, sigma: float, snr: float = 7.0, separation: float | None = None, bg_size: float | None = None,
-               median: bool = True, edge: int | None = None, downsample: int = 4):
-    """Fast detection on a raw fluorescence frame, without a full-resolution background image.
+               median: bool = True, edge: int | None = None, downsample: int = 4, coarse_snr: float = 4.0):
+    """Fast detection on a raw fluorescence frame: coarse candidates, then exact peaks in small tiles.
 
-    The 3x3 median and the Gaussian matched filter run on the raw counts
-    (filtering is linear, so filtering then subtracting a smooth background
-    equals subtracting then filtering); the background (grey-level opening,
-    as :func:`ptrack.preprocess.spatial_background`) is computed on a
-    ``downsample``-times smaller copy of the filtered frame and looked up per
-    block. Four passes over the full frame in all.
+    1. The frame is reduced ``downsample`` times by block averaging (one pass
+       over the full frame); the background (grey-level opening, as
+       :func:`ptrack.preprocess.spatial_background`) and the block noise are
+       measured there, and blocks above ``coarse_snr`` noise (after a 2x2
+       block smoothing) become candidates: a spot's photons are
+       concentrated in a few blocks, so the coarse test is about as sensitive
+       as the final one.
+    2. In each connected region of candidate blocks (grown by one block), a
+       numba kernel computes the 3x3 median and the
+       Gaussian matched filter of the raw counts on a small tile and keeps
+       its local maxima more than ``snr`` noise sigmas above the background,
+       exactly as :func:`find_peaks` would on the whole frame. The filtered
+       image's noise is measured the same way on a grid of sample tiles.
+
+    Full-resolution work is thus one block average plus tiles around the
+    particles, instead of four full-frame filters.
 
     Returns
     -------
@@ -183,40 +325,61 @@ def detect_raw(frame, sigma: float, snr: float = 7.0, separation: float | None =
     signal : ndarray
         Filtered height above background (counts).
     aux : dict
-        ``median`` (the 3x3-median frame), ``bg`` (block background of the
-        filtered frame), ``ds``, ``noise`` (filtered-image noise, counts).
+        ``bg`` (block background, filtered-image units), ``ds``, ``noise``
+        (filtered-image noise, counts), ``n_candidates``.
     """
     import cv2
 
     raw = np.ascontiguousarray(frame)
-    if raw.dtype not in (np.uint8, np.uint16, np.float32):
+    if raw.dtype not in (np.uint8, np.uint16, np.float32, np.float64):
         raw = raw.astype(np.float32)
-    m3 = cv2.medianBlur(raw, 3) if median else raw
-    ks = int(2 * math.ceil(2.5 * max(0.5, sigma)) + 1)
-    kern = cv2.getGaussianKernel(ks, max(0.5, float(sigma)), cv2.CV_32F)
-    # (converting first is 2x faster than letting OpenCV filter uint16 into float32)
-    smooth = cv2.sepFilter2D(m3.astype(np.float32), cv2.CV_32F, kern, kern, borderType=cv2.BORDER_REFLECT)
-    H, W = smooth.shape
+    H, W = raw.shape
     ds = max(1, int(downsample)) if min(H, W) >= 64 else 1
-    small = cv2.resize(smooth, (max(1, W // ds), max(1, H // ds)), interpolation=cv2.INTER_AREA) if ds > 1 else smooth
+    small = cv2.resize(raw, (max(1, W // ds), max(1, H // ds)), interpolation=cv2.INTER_AREA).astype(np.float32) \
+        if ds > 1 else raw.astype(np.float32)
     bg_size = max(15.0, 12.0 * sigma) if bg_size is None else float(bg_size)
     k = max(3, int(round(bg_size / ds)) | 1)
     rect = cv2.getStructuringElement(cv2.MORPH_RECT, (k, k))
     opened = cv2.blur(cv2.morphologyEx(small, cv2.MORPH_OPEN, rect, borderType=cv2.BORDER_REPLICATE), (k, k),
                       borderType=cv2.BORDER_REPLICATE)
     # the opening sits below the background by a few noise sigmas: lift it to the residual's median
-    bg = opened + np.float32(np.median((small - opened)[::2, ::2]))
-    bh, bw = bg.shape
-    sm_sub = smooth[ds // 2::ds, ds // 2::ds]
-    h2, w2 = min(sm_sub.shape[0], bh), min(sm_sub.shape[1], bw)
-    sub = (sm_sub[:h2:2, :w2:2] - bg[:h2:2, :w2:2]).ravel()
-    noise = max(float(1.4826 * np.median(np.abs(sub - np.median(sub)))), 1e-6)
+    resid = small - opened
+    off = float(np.median(resid[::2, ::2]))
+    bg = opened + np.float32(off)
+    resid -= off
+    coarse = cv2.blur(resid, (2, 2)) if ds > 1 else resid
+    cnoise = max(float(1.4826 * np.median(np.abs(coarse[::2, ::2]))), 1e-6)
+    cthr = coarse_snr * cnoise
+    # candidates: blocks above threshold and their neighbours, merged into connected regions whose
+    # bounding boxes are searched at full resolution (each pixel filtered about once)
+    mask = cv2.dilate((coarse > cthr).astype(np.uint8), np.ones((3, 3), np.uint8))
+    n_reg, _, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    st = stats[1:].astype(np.int64)
+    boxes = np.empty((len(st), 4), np.int64)
+    boxes[:, 0] = st[:, cv2.CC_STAT_TOP] * ds
+    boxes[:, 1] = np.minimum((st[:, cv2.CC_STAT_TOP] + st[:, cv2.CC_STAT_HEIGHT]) * ds, H) - 1
+    boxes[:, 2] = st[:, cv2.CC_STAT_LEFT] * ds
+    boxes[:, 3] = np.minimum((st[:, cv2.CC_STAT_LEFT] + st[:, cv2.CC_STAT_WIDTH]) * ds, W) - 1
+    # the last partial block row/column (H, W not multiples of ds) belongs to the border region
+    boxes[boxes[:, 1] >= (H // ds) * ds - 1, 1] = H - 1
+    boxes[boxes[:, 3] >= (W // ds) * ds - 1, 3] = W - 1
+    ks = int(2 * math.ceil(2.5 * max(0.5, sigma)) + 1)
+    kern = cv2.getGaussianKernel(ks, max(0.5, float(sigma)), cv2.CV_64F).ravel()
+    # noise of the filtered image, from a grid of sample tiles
+    step = max(16, int(math.sqrt(H * W / 256)))
+    gr, gc = np.meshgrid(np.arange(step // 2, H - 8, step), np.arange(step // 2, W - 8, step), indexing="ij")
+    samples = _tile_values(raw, gr.ravel().astype(np.int64), gc.ravel().astype(np.int64), kern, bool(median),
+                           bg, ds, 8)
+    noise = max(float(1.4826 * np.median(np.abs(samples - np.median(samples)))), 1e-6)
     thr = snr * noise
     half = max(1, int(round(separation if separation is not None else max(2.0, 2.5 * sigma))))
     edge = max(2, int(round(sigma))) if edge is None else int(edge)
-    low = float(bg.min()) + thr
-    rows, cols, vals = _local_maxima_bg(smooth, bg, ds, float(thr), low, half, edge)
-    return rows, cols, vals, {"median": m3, "bg": bg, "ds": ds, "noise": noise}
+    rows, cols, vals = _tile_peaks(raw, boxes, kern, bool(median), bg, ds, float(thr), half, edge)
+    rows, cols, vals = np.asarray(rows, np.int64), np.asarray(cols, np.int64), np.asarray(vals, np.float64)
+    _, first = np.unique(rows * W + cols, return_index=True)     # bounding boxes of two regions may overlap
+    rows, cols, vals = rows[first], cols[first], vals[first]
+    return (rows, cols, vals,
+            {"bg": bg, "ds": ds, "noise": noise, "n_candidates": int(len(boxes))})
 
 
 def find_peaks(img: np.ndarray, sigma: float, snr: float = 7.0, separation: float | None = None,
@@ -649,12 +812,12 @@ def locate(frame, img=None, sigma: float = 1.5, snr: float = 7.0, separation: fl
         rows, cols, vals, aux = detect_raw(frame, sigma, snr=snr, separation=separation, median=median)
         if median and len(rows):
             half = max(3, int(math.ceil(3 * sigma)))
-            noise_raw = aux["noise"] * 2.0 * math.sqrt(math.pi) * max(0.5, sigma)   # per-pixel noise
-            hr, hc = _hot_in_rois(np.ascontiguousarray(frame), aux["median"], aux["bg"], aux["ds"], rows, cols,
-                                  half, 8.0 * noise_raw)
+            noise_raw = aux["noise"] * 2.0 * math.sqrt(math.pi) * max(0.5, sigma)   # per-pixel noise (approx.)
+            hr, hc, hv = _hot_in_rois(np.ascontiguousarray(frame), aux["bg"], aux["ds"], rows, cols, half,
+                                      8.0 * noise_raw)
             if len(hr):
                 frame = np.array(frame, copy=True)
-                frame[np.asarray(hr), np.asarray(hc)] = aux["median"][np.asarray(hr), np.asarray(hc)]
+                frame[np.asarray(hr), np.asarray(hc)] = np.asarray(hv)
     else:
         if img is None:
             img = prepare(frame, brightfield=brightfield, bg_size=max(15.0, 12 * sigma))
