@@ -577,3 +577,21 @@ def test_coherent_brightfield_contrast_follows_the_scatter_phase():
         list(render_frames(t, (120, 360), camera=Camera(background=0.0), brightfield="coherent"))
     with pytest.raises(UserError):
         list(render_frames(t, (120, 360), brightfield="darkfield"))
+
+
+def test_cli_coherent_brightfield(tmp_path):
+    t = _small_table()
+    src = tmp_path / "traj.parquet"
+    from ptrack.table import write_table
+
+    write_table(t, src)
+    out = tmp_path / "bf"
+    assert main(["render", str(src), "--out", str(out), "--shape", "36", "48", "--brightfield",
+                 "--brightfield-model", "coherent", "--background", "500", "--photons", "2000",
+                 "--scatter-phase", "3.0"]) == 0
+    p = json.loads((out / "params.json").read_text())
+    assert p["mode"] == "coherent" and p["scatter_phase"] == 3.0 and p["brightfield"] is True
+    assert main(["render-calibration", "--out", str(tmp_path / "cal"), "--z-range", "-1e-6", "1e-6",
+                 "--z-step", "1e-6", "--shape", "32", "32", "--brightfield"]) == 0
+    cp = json.loads((tmp_path / "cal" / "calib_params.json").read_text())
+    assert cp["brightfield"] == "absorption"

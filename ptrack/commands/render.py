@@ -35,7 +35,7 @@ def run(a) -> int:
     from ptrack.table import read_table
     from sim.render.movie import render_movie
     from sim.render.optics import sample_pixel_size
-    from sim.render.options import check_out_dir, optics_camera_from_args, preview_pages, save_montage, spread_indices
+    from sim.render.options import brightfield_from_args, check_out_dir, optics_camera_from_args, preview_pages, save_montage, spread_indices
 
     table = read_table(a.trajectories)
     if len(table) == 0:
@@ -52,7 +52,7 @@ def run(a) -> int:
         shape = (int(np.ceil(ymax)) + 16, int(np.ceil(xmax)) + 16)
     else:
         shape = tuple(a.shape)
-    paths = render_movie(table, out, shape, optics, camera, focal_plane=a.focal_plane, brightfield=a.brightfield,
+    paths = render_movie(table, out, shape, optics, camera, focal_plane=a.focal_plane, brightfield=brightfield_from_args(a),
                          motion_blur_substeps=a.motion_blur, seed=a.seed, radius=a.radius, scatter_phase=a.scatter_phase,
                          compression="zlib" if a.compress else None,
                          extra_params={"command": "ptrack render " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["render"] else None,

@@ -26,13 +26,13 @@ def add_arguments(p):
 
 def run(a) -> int:
     from sim.render.calibration import render_calibration
-    from sim.render.options import check_out_dir, optics_camera_from_args, preview_pages, save_montage, spread_indices
+    from sim.render.options import brightfield_from_args, check_out_dir, optics_camera_from_args, preview_pages, save_montage, spread_indices
 
     out = check_out_dir(a.out)
     optics, camera = optics_camera_from_args(a)
     paths = render_calibration(out, a.z_range[0], a.z_range[1], a.z_step, shape=tuple(a.shape), optics=optics,
                                camera=camera, focal_plane=a.focal_plane, radius=a.radius or 0.0,
-                               brightfield=a.brightfield, seed=a.seed, compression="zlib" if a.compress else None,
+                               brightfield=brightfield_from_args(a), seed=a.seed, compression="zlib" if a.compress else None,
                                scatter_phase=a.scatter_phase)
     z = np.loadtxt(paths["z"], delimiter=",", skiprows=1)[:, 1].reshape(-1)
     pages = spread_indices(len(z), 12)

@@ -38,10 +38,11 @@ def add_optics_camera_arguments(p: argparse.ArgumentParser) -> None:
     c.add_argument("--gain", type=float, default=_CAM.gain, help=f"gain, ADU per e- (default {_CAM.gain})")
     c.add_argument("--offset", type=float, default=_CAM.offset, help=f"offset, ADU (default {_CAM.offset:g})")
     c.add_argument("--bit-depth", type=int, default=_CAM.bit_depth, help=f"bit depth (default {_CAM.bit_depth})")
-    c.add_argument("--brightfield", nargs="?", const="absorption", default=False, choices=["absorption", "coherent"],
-                   help="brightfield instead of fluorescence: 'absorption' (default when given without a value: "
-                        "dark particles on a bright field) or 'coherent' (scattered light interfering with the "
-                        "illumination: contrast inverts across focus); --background is the illumination")
+    c.add_argument("--brightfield", action="store_true",
+                   help="brightfield instead of fluorescence (--background is the illumination, photons per pixel)")
+    c.add_argument("--brightfield-model", choices=["absorption", "coherent"], default="absorption",
+                   help="'absorption': dark PSF-shaped dips (default); 'coherent': scattered light interfering "
+                        "with the illumination (rings, contrast inverts across focus)")
     c.add_argument("--scatter-phase", type=float, default=2.5,
                    help="coherent brightfield: phase of the scattered field, rad (pi: extinction, pi/2: phase object; default 2.5)")
     c.add_argument("--compress", action="store_true", help="lossless zlib compression of the TIFF")
@@ -54,6 +55,11 @@ def optics_camera_from_args(a, exposure=None) -> tuple[Optics, Camera]:
     camera = Camera(pixel_pitch=a.pixel_pitch, quantum_efficiency=a.qe, read_noise=a.read_noise, gain=a.gain,
                     offset=a.offset, bit_depth=a.bit_depth, photons=a.photons, background=a.background, exposure=exposure)
     return optics, camera
+
+
+def brightfield_from_args(a):
+    """False (fluorescence), 'absorption' or 'coherent'."""
+    return a.brightfield_model if a.brightfield else False
 
 
 def check_out_dir(out) -> Path:
