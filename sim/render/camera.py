@@ -261,6 +261,8 @@ def poisson(lam: np.ndarray, rng: np.random.Generator, background: float | None 
     B = max(B, 0.0)
     work = work or Workspace()
     n = flat.size
+    if B > 2e4:  # a very bright field: the CDF table would be large; numpy's sampler per pixel
+        return rng.poisson(np.maximum(flat, 0.0) * scale).astype(np.float64).reshape(np.shape(lam))
     cdf = _poisson_cdf_table(B)
     cls = work.get("cls", n, np.int8)
     eps = 1e-9 * max(B, 1.0)
