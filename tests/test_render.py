@@ -597,3 +597,28 @@ def test_cli_coherent_brightfield(tmp_path):
                  "--z-step", "1e-6", "--shape", "32", "32", "--brightfield"]) == 0
     cp = json.loads((tmp_path / "cal" / "calib_params.json").read_text())
     assert cp["brightfield"] == "absorption"
+
+
+@pytest.mark.parametrize("cam", [Camera(background=20.0), Camera(background=3.0, read_noise=0.0, gain=1.7, offset=2.0),
+                                 Camera(background=50.0, read_noise=4.0, offset=0.0, bit_depth=8)])
+def test_camera_adu_distribution_equals_direct_simulation(cam):
+    """The fast path (compound background distribution, pooled tails) gives the same ADU histogram as
+    a direct simulation of Poisson + Gaussian + gain/offset + rounding + clipping."""
+    rng = np.random.default_rng(9)
+    img = np.full((300, 300), cam.background)
+    img[:, 150:] += np.linspace(0.0, 2.0, 150)[None, :]  # faint tails and moderate light
+    fast = np.concatenate([expose(img, cam, rng).ravel() for _ in range(3)]).astype(np.int64)
+    lam = np.tile(img.ravel() * cam.quantum_efficiency, 3)
+    e = rng.poisson(lam) + cam.read_noise * rng.standard_normal(lam.size)
+    direct = np.clip(np.floor(cam.gain * e + cam.offset + 0.5), 0, cam.max_adu).astype(np.int64)
+    for half in (slice(0, 150), slice(150, 300)):
+        sel = np.zeros((300, 300), bool)
+        sel[:, half] = True
+        sel = np.tile(sel.ravel(), 3)
+        a = np.bincount(fast[sel], minlength=cam.max_adu + 1)
+        b = np.bincount(direct[sel], minlength=cam.max_adu + 1)
+        keep = (a + b) > 20
+        chi2 = np.sum((a[keep] - b[keep]) ** 2 / (a[keep] + b[keep]))
+        dof = keep.sum() - 1
+        assert chi2 < dof + 5 * np.sqrt(2 * dof), (chi2, dof)
+        assert abs(a[~keep].sum() - b[~keep].sum()) < 5 * np.sqrt(a[~keep].sum() + b[~keep].sum() + 1)
