@@ -258,12 +258,23 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
                 _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt,
                         model, cp, cpw, nf_model, nfp, rotation, walls, whist, start, nbj, shift, hist,
                         force, torque, diag, fbuf, tbuf, dbuf)
+                change = 0.0
+                vscale = 0.0
                 for i in range(n):
                     for c in range(3):
-                        vel[i, c] = v0[i, c] + dt / mass[i] * (phi * force[i, c] + (1.0 - phi) * f0[i, c])
+                        vnew = v0[i, c] + dt / mass[i] * (phi * force[i, c] + (1.0 - phi) * f0[i, c])
+                        d = abs(vnew - vel[i, c])
+                        if d > change:
+                            change = d
+                        if abs(vnew) > vscale:
+                            vscale = abs(vnew)
+                        vel[i, c] = vnew
                         pos[i, c] = x0[i, c] + dt * (phi * vel[i, c] + (1.0 - phi) * v0[i, c])
                         if rotation:
                             omega[i, c] = w0[i, c] + dt / inertia[i] * (phi * torque[i, c] + (1.0 - phi) * t0[i, c])
+                # fixed-point convergence: relative change of the end-of-step velocities
+                if change <= limits[3] * (vscale + 1e-300):
+                    break
             hist[:, :] = hist0
             whist[:, :] = whist0
             if needs_rebuild(pos, ref_pos, skin):
@@ -342,6 +353,10 @@ class DEMSystem:
         Key of the counter-based Brownian random numbers.
     max_overlap, v_max : float
         Blow-up limits (overlap / radius, speed in m/s).
+    integrator, phi, n_iter, tol :
+        0: velocity Verlet; 1: the seed's phi-scheme (eq. 3.28-3.29) with at
+        most ``n_iter`` fixed-point iterations, stopped when the relative
+        change of the velocities falls below ``tol``.
     threads : int
         1: serial pair kernel (bitwise reproducible); T > 1: the threaded
         kernel with T blocks (reproducible for the same T, round-off
@@ -352,7 +367,7 @@ class DEMSystem:
                  nfp=None, rotation=True, walls=None, box_lo=(0, 0, 0), box_length=(1, 1, 1),
                  periodic=(0, 0, 0), fconst=None, drag_mode=DRAG_NONE, gamma=None, extp=None, dt=1e-6,
                  skin=None, cutoff=0.0, seed=0, max_overlap=0.5, v_max=np.inf, integrator=0, phi=0.0,
-                 n_iter=3, threads=1):
+                 n_iter=3, threads=1, tol=1e-10):
         f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
         self.pos = f64(np.array(pos, dtype=np.float64, copy=True))
         n = len(self.pos)
@@ -384,7 +399,7 @@ class DEMSystem:
         self.cutoff = float(cutoff)
         self.skin = float(0.2 * self.radius.min() if skin is None else skin)
         self.seed = int(seed)
-        self.limits = f64([max_overlap, v_max, 1.0 if self._has_bottom() else 0.0])
+        self.limits = f64([max_overlap, v_max, 1.0 if self._has_bottom() else 0.0, tol])
         self.integrator = int(integrator)
         self.phi = float(phi)
         self.n_iter = int(n_iter)
@@ -635,8 +650,18 @@ def system_from_scene(scene, state=None, dt=None):
                      nf_model=inter.nf_model, nfp=inter.nfp, rotation=inter.rotation, walls=scene_walls(scene),
                      box_lo=(0, 0, 0), box_length=scene.domain.size, periodic=periodic, fconst=fconst,
                      drag_mode=drag_mode, gamma=st.gamma, extp=extp, dt=1e-9 if dt is None else dt,
-                     skin=inter.skin, cutoff=inter.cutoff, seed=scene.seed, max_overlap=inter.max_overlap)
+                     skin=inter.skin, cutoff=inter.cutoff, seed=scene.seed, max_overlap=inter.max_overlap,
+                     **_integrator_options(scene))
     return sysm, st
+
+
+def _integrator_options(scene):
+    """integrator.kind = "trapezoidal" selects the seed's phi-scheme (eq. 3.28-3.29) with
+    fixed-point iterations; everything else uses velocity Verlet."""
+    it = scene.integrator
+    if it.kind == "trapezoidal":
+        return dict(integrator=1, phi=it.phi, n_iter=it.max_iterations, tol=it.tolerance)
+    return dict(integrator=0)
 
 
 def _frame_df(frame, sysm):
@@ -742,6 +767,7 @@ def run_dem(scene, out_dir, resume=False, progress=True, checkpoint_every=None, 
     traj_path = out_dir / "trajectories.parquet"
     ck_path = out_dir / "checkpoint.npz"
     resolved = {"scene": sdict, "engine": "dem", "contact_model": inter.model_name,
+                "integrator": "phi-scheme (seed eq. 3.28-3.29, fixed-point)" if sysm.integrator == 1 else "velocity Verlet",
                 "dt": dt0, "dt_mode": "fixed (time.dt)" if fixed_dt else "auto + adaptive" if inter.adaptive_dt else "auto",
                 "dt_reason": why, "n_output_frames": n_out + 1, "units": "SI",
                 "coordinates": "unwrapped across periodic sides"}

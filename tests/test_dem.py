@@ -175,6 +175,14 @@ def test_phi_scheme_trapezoidal_conserves_energy_of_elastic_bounce():
         assert abs(s.vel[0, 2] - v0) < tol * v0 * 50
 
 
+def test_trapezoidal_scene_uses_phi_scheme(tmp_path):
+    sc = _scene(integrator={"kind": "trapezoidal", "phi": 0.5, "max_iterations": 20, "tolerance": 1e-9},
+                time={"final": 0.012})
+    res = run_dem(sc, tmp_path, progress=False)
+    assert res.system.integrator == 1 and res.system.phi == 0.5
+    assert np.all(np.isfinite(res.system.pos)) and np.all(res.system.pos[:, 2] > 0)
+
+
 def test_interaction_sections_are_validated():
     with pytest.raises(UserError, match="contact.stiffness"):
         _scene(contact={"stiffness": 3})
