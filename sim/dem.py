@@ -42,6 +42,16 @@ from sim.forces.contact import (D_MAX_DAMP, D_MAX_OVERLAP, D_MAX_OVERLAP_I, D_MA
 from sim.forces.drag import drag_force_scalar
 from sim.neighbors import _build, carry_history, needs_rebuild, wrap_positions
 
+# The cached kernels below call a parallel=True kernel; when they are loaded from
+# numba's on-disk cache in a fresh process the threading layer must already be
+# running, otherwise the first call can crash.  Start it once at import.
+try:  # pragma: no cover - depends on numba internals
+    from numba.np.ufunc.parallel import _launch_threads
+
+    _launch_threads()
+except Exception:  # noqa: BLE001
+    pass
+
 OK, BLOWUP_OVERLAP, BLOWUP_NAN, BLOWUP_WALL, BLOWUP_SPEED = 0, 1, 2, 3, 4
 STATUS_TEXT = {
     BLOWUP_OVERLAP: "overlap beyond the allowed fraction of a radius",
