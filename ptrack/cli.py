@@ -67,9 +67,11 @@ def _load(modname: str, what: str):
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     top = _top_parser()
-    if not argv or argv[0] in ("-h", "--help", "--version"):
-        top.parse_args(argv)
+    if not argv or argv[0] in ("-h", "--help"):
         top.print_help()
+        return 0
+    if argv[0] == "--version":
+        print(f"ptrack {__version__}")
         return 0
     name, rest = argv[0], argv[1:]
     try:
