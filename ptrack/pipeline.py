@@ -192,9 +192,10 @@ def track_movie(movie, out=None, pixel_size: float | None = None, frame_interval
     if len(linked) == 0:
         raise UserError(f"no trajectory of {min_length} or more frames in {source}",
                         "lower --min-length, raise --memory or give a larger --search-range")
-    # renumber particles 0..n-1 in order of first appearance
-    first = linked.groupby("particle")["frame"].transform("min")
-    order = linked.assign(_f=first).sort_values(["_f", "particle"])["particle"].drop_duplicates().to_numpy()
+    # renumber particles 0..n-1 by first appearance, ties by position (trackpy's own ids depend on
+    # set iteration order, so they can differ between runs on identical input)
+    firsts = linked.sort_values(["frame", "y_px", "x_px"], kind="stable").drop_duplicates("particle")
+    order = firsts.sort_values(["frame", "y_px", "x_px"], kind="stable")["particle"].to_numpy()
     linked["particle"] = linked["particle"].map({p: i for i, p in enumerate(order)}).astype(np.int64)
     meta = {
         "pixel_size": px, "frame_interval": dt, "source": str(source), "n_frames": n_frames,
