@@ -142,7 +142,8 @@ def is_3d(df: pd.DataFrame) -> bool:
     return bool(np.isfinite(df["z"].to_numpy()).any())
 
 
-def _jsonable(meta: dict) -> dict:
+def toto_jsonable(meta):
+    """Convert numpy scalars/arrays, Paths, tuples (recursively) to JSON-ready Python objects."""
     def conv(v):
         if isinstance(v, (np.floating, np.integer)):
             return v.item()
@@ -166,7 +167,7 @@ def write_table(df: pd.DataFrame, path, fmt: str | None = None) -> Path:
     """
     path = Path(path)
     fmt = fmt or ("csv" if path.suffix.lower() == ".csv" else "parquet")
-    meta = _jsonable(dict(df.attrs.get(META_KEY, {})))
+    meta = to_jsonable(dict(df.attrs.get(META_KEY, {})))
     meta.setdefault("units", {c: u for c, u in UNITS.items() if c in df.columns})
     if fmt == "csv":
         with atomic_output(path, "w") as fh:
@@ -245,7 +246,7 @@ class TrajectoryWriter:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.tmp = self.path.with_name(self.path.name + ".part")
-        self.meta = _jsonable(dict(meta or {}))
+        self.meta = to_jsonable(dict(meta or {}))
         self._writer = None
         self._schema = None
         self.rows = 0
