@@ -142,7 +142,7 @@ def is_3d(df: pd.DataFrame) -> bool:
     return bool(np.isfinite(df["z"].to_numpy()).any())
 
 
-def toto_jsonable(meta):
+def to_jsonable(meta):
     """Convert numpy scalars/arrays, Paths, tuples (recursively) to JSON-ready Python objects."""
     def conv(v):
         if isinstance(v, (np.floating, np.integer)):
