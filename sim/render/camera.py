@@ -122,6 +122,39 @@ def _poisson_cdf_table(mean: float) -> np.ndarray:
 
 
 @njit(cache=True)
+def _table_draw(cdf, guide, u):
+    """Smallest k with cdf[k] >= u (u uniform in [0, 1)), starting the search from the guide table."""
+    k = guide[int(u * guide.size)]
+    while cdf[k] < u:
+        k += 1
+    return k
+
+
+@njit(cache=True)
+def _poisson_inversion(r, u):
+    """Poisson(r) count for a small mean r by inverting the CDF at the uniform u (capped at 400)."""
+    p = math.exp(-r)
+    cum = p
+    kk = 0
+    while u > cum and kk < 400:
+        kk += 1
+        p *= r / kk
+        cum += p
+    return kk
+
+
+@njit(cache=True)
+def _round_clip(v, maxv):
+    """round(v) clipped to [0, maxv] (the ADC)."""
+    v = math.floor(v + 0.5)
+    if v < 0.0:
+        v = 0.0
+    elif v > maxv:
+        v = maxv
+    return v
+
+
+@njit(cache=True)
 def _classify(ph, scale, B, eps, tiny, cls):
     """Class of each pixel's mean lam = max(ph, 0) * scale against the background mean B:
     0 background only; 1 background + small residual (inversion); 2 + large residual;
@@ -151,7 +184,10 @@ def _classify(ph, scale, B, eps, tiny, cls):
 
 @njit(cache=True)
 def _scatter_events(ph, scale, B, cls, n4, u, out, cum, idx):
-    """Drop len(u) events (u uniform in [0, sum r)) on the class-4 pixels with probability ~ r_i."""
+    """Drop len(u) events (u uniform in [0, sum r)) on the class-4 pixels with probability ~ r_i.
+
+    Each event adds 1 to ``out`` at its pixel: used by :func:`poisson` (``out`` holds the
+    background counts) and by :func:`expose` (``out`` = the zeroed extra counts)."""
     j = 0
     acc = 0.0
     for i in range(ph.size):
@@ -189,30 +225,15 @@ def _guide_table(cdf, G):
 @njit(cache=True)
 def _poisson_split(ph, scale, B, cdf, guide, u1, cls, u2, out):
     j = 0
-    G = guide.size
     for i in range(ph.size):
         c = cls[i]
         if c == 3:
             out[i] = 0.0  # filled by the caller
             continue
-        # background part: smallest k with cdf[k] >= u, from the guide table
-        u = u1[i]
-        k0 = guide[int(u * G)]
-        while cdf[k0] < u:
-            k0 += 1
-        k = float(k0)
+        k = float(_table_draw(cdf, guide, u1[i]))  # background part
         if c == 1:
-            r = max(ph[i], 0.0) * scale - B
-            p = math.exp(-r)
-            cum = p
-            kk = 0
-            uu = u2[j]
+            k += _poisson_inversion(max(ph[i], 0.0) * scale - B, u2[j])
             j += 1
-            while uu > cum and kk < 400:
-                kk += 1
-                p *= r / kk
-                cum += p
-            k += kk
         out[i] = k
 
 
@@ -221,13 +242,7 @@ def _to_adu(e, z, read_noise, gain, offset, maxv, out):
     """ADU = clip(round(gain * (electrons + read_noise * z) + offset), 0, maxv), z standard normal."""
     n = e.size
     for i in range(n):
-        v = gain * (e[i] + read_noise * z[i]) + offset
-        v = math.floor(v + 0.5)
-        if v < 0.0:
-            v = 0.0
-        elif v > maxv:
-            v = maxv
-        out[i] = np.uint16(v)
+        out[i] = np.uint16(_round_clip(gain * (e[i] + read_noise * z[i]) + offset, maxv))
 
 
 class Workspace:
@@ -326,8 +341,6 @@ def _expose_kernel(ph, scale, B, cls, u1, u2, extra, big, low, z, cdf, guide, ac
     """ADU per pixel. Background-only pixels (no residual light, or faint-tail pixels that got no
     event of the pooled process) take their ADU straight from the compound background distribution
     (one uniform, no normal); the others add their residual counts and read noise explicitly."""
-    G = guide.size
-    AG = aguide.size
     j1 = 0
     jb = 0
     jl = 0
@@ -336,68 +349,23 @@ def _expose_kernel(ph, scale, B, cls, u1, u2, extra, big, low, z, cdf, guide, ac
         c = cls[i]
         u = u1[i]
         if c == 0 or (c == 4 and extra[i] == 0.0):
-            a = aguide[int(u * AG)]
-            while acdf[a] < u:
-                a += 1
-            out[i] = np.uint16(j0 + a)
+            out[i] = np.uint16(j0 + _table_draw(acdf, aguide, u))
             continue
         if c == 3:
             k = low[jl]
             jl += 1
         else:
-            k0 = guide[int(u * G)]
-            while cdf[k0] < u:
-                k0 += 1
-            k = float(k0)
+            k = float(_table_draw(cdf, guide, u))
             if c == 1:
-                r = max(ph[i], 0.0) * scale - B
-                p = math.exp(-r)
-                cum = p
-                kk = 0
-                uu = u2[j1]
+                k += _poisson_inversion(max(ph[i], 0.0) * scale - B, u2[j1])
                 j1 += 1
-                while uu > cum and kk < 400:
-                    kk += 1
-                    p *= r / kk
-                    cum += p
-                k += kk
             elif c == 2:
                 k += big[jb]
                 jb += 1
             else:
                 k += extra[i]
-        v = gain * (k + read_noise * z[jz]) + offset
+        out[i] = np.uint16(_round_clip(gain * (k + read_noise * z[jz]) + offset, maxv))
         jz += 1
-        v = math.floor(v + 0.5)
-        if v < 0.0:
-            v = 0.0
-        elif v > maxv:
-            v = maxv
-        out[i] = np.uint16(v)
-
-
-@njit(cache=True)
-def _scatter_to(ph, scale, B, cls, n4, u, extra, cum, idx):
-    """Like _scatter_events, into ``extra`` (zeroed by the caller)."""
-    j = 0
-    acc = 0.0
-    for i in range(ph.size):
-        if cls[i] == 4:
-            acc += max(ph[i], 0.0) * scale - B
-            cum[j] = acc
-            idx[j] = i
-            j += 1
-    for k in range(u.size):
-        t = u[k] * acc
-        lo = 0
-        hi = n4 - 1
-        while lo < hi:
-            mid = (lo + hi) >> 1
-            if cum[mid] > t:
-                hi = mid
-            else:
-                lo = mid + 1
-        extra[idx[lo]] += 1.0
 
 
 _ADU_TABLES: dict = {}
@@ -458,7 +426,7 @@ def expose(photons: np.ndarray, camera: Camera, rng: np.random.Generator, work: 
     extra.fill(0.0)
     if n4:
         events = rng.random(int(rng.poisson(r4)))
-        _scatter_to(flat, qe, B, cls, n4, events, extra, work.get("cum", n, np.float64), work.get("idx", n, np.int64))
+        _scatter_events(flat, qe, B, cls, n4, events, extra, work.get("cum", n, np.float64), work.get("idx", n, np.int64))
     bigm = cls == 2
     big = rng.poisson(np.maximum(flat[bigm], 0.0) * qe - B).astype(np.float64) if bigm.any() else np.zeros(0)
     lowm = cls == 3
