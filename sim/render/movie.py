@@ -36,7 +36,7 @@ import scipy.fft as sfft
 from numba import njit
 
 from ptrack.errors import UserError, atomic_output, check_positive
-from ptrack.table import metadata, validate, write_table
+from ptrack.table import metadata, to_jsonable, validate, write_table
 
 from .camera import Camera, Workspace, expose
 from .optics import Optics, PSFStack, build_psf_stack, check_sampling, patch_size, sample_pixel_size, size_transfer
@@ -623,20 +623,10 @@ def render_movie(table: pd.DataFrame, out_dir, shape=(256, 256), optics: Optics 
     truth_path = write_table(truth, out_dir / "truth.parquet")
     params_path = out_dir / "params.json"
     with atomic_output(params_path, "w") as fh:
-        json.dump(_jsonable(params), fh, indent=2, sort_keys=True)
+        json.dump(to_jsonable(params), fh, indent=2, sort_keys=True)
         fh.write("\n")
     return {"movie": movie, "truth": truth_path, "params": params_path}
 
 
-def _jsonable(v):
-    if isinstance(v, dict):
-        return {str(k): _jsonable(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_jsonable(x) for x in v]
-    if isinstance(v, (np.floating, np.integer)):
-        return v.item()
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    if isinstance(v, Path):
-        return str(v)
-    return v
+# sim.render.calibration imports this name; the conversion itself lives in ptrack.table.
+_jsonable = to_jsonable
