@@ -23,7 +23,6 @@ Fig. 3.8, and the relative error with its CI per case) and, with ``--json``,
 """
 from __future__ import annotations
 
-import json
 import math
 import sys
 import time
@@ -33,6 +32,7 @@ import numpy as np
 
 from ptrack.constants import BOLTZMANN
 from sim.studies._dask import add_study_arguments, case_seed, run_cases
+from sim.studies._output import case_records, save_figure, write_csv, write_json
 
 RADII = (1e-9, 1e-8, 1e-7, 1e-6)
 VISCOSITIES = (1e-4, 1e-3, 1e-2)
@@ -147,8 +147,6 @@ def write_outputs(result: dict, out_dir, json_path=None) -> list[Path]:
     import matplotlib.pyplot as plt
     import pandas as pd
 
-    from ptrack.errors import atomic_output
-
     paths = []
     cases = result["cases"]
     if out_dir is not None:
@@ -161,9 +159,7 @@ def write_outputs(result: dict, out_dir, json_path=None) -> list[Path]:
                             "D_ci95_family_lo": c["D_ci95_family"][0], "D_ci95_family_hi": c["D_ci95_family"][1],
                             "family_ci_covers": c["family_ci_covers"],
                             "n_displacements": c["n_displacements"]} for c in cases])
-        with atomic_output(out_dir / "diffusion.csv", "w") as fh:
-            df.to_csv(fh, index=False)
-        paths.append(out_dir / "diffusion.csv")
+        paths.append(write_csv(df, out_dir / "diffusion.csv"))
         fig, ax = plt.subplots(1, 2, figsize=(11, 4.5))
         markers = {1e-4: "o", 1e-3: "s", 1e-2: "^"}
         for mu in sorted({c["viscosity"] for c in cases}):
@@ -188,20 +184,15 @@ def write_outputs(result: dict, out_dir, json_path=None) -> list[Path]:
                   title=f"max error {result['max_error_pct']:.2f} % (seed: 10.2 %)")
         ax[1].legend(fontsize=8)
         fig.tight_layout()
-        with atomic_output(out_dir / "diffusion.png", None) as tmp:
-            fig.savefig(tmp, dpi=120, format="png")
-        plt.close(fig)
-        paths.append(out_dir / "diffusion.png")
+        paths.append(save_figure(fig, out_dir / "diffusion.png"))
     if json_path is not None:
         keys = ("radius", "viscosity", "D_analytical", "D_sim", "D_ci95", "error_pct", "ci_covers", "D_ci95_family",
                 "family_ci_covers", "n_displacements")
-        doc = {"cases": [{k: c[k] for k in keys} for c in cases], "max_error_pct": result["max_error_pct"],
+        doc = {"cases": case_records(cases, keys), "max_error_pct": result["max_error_pct"],
                "n_ci_covering": result["n_ci_covering"], "n_family_ci_covering": result["n_family_ci_covering"],
                "wall_time_s": result["wall_time_s"],
                "settings": result["settings"]}
-        with atomic_output(Path(json_path), "w") as fh:
-            json.dump(doc, fh, indent=2)
-        paths.append(Path(json_path))
+        paths.append(write_json(doc, json_path))
     return paths
 
 

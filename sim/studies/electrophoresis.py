@@ -33,7 +33,6 @@ seed's Table 3.2 layout), ``electrophoresis.png`` (like Fig. 3.15) and, with
 """
 from __future__ import annotations
 
-import json
 import math
 import time
 from pathlib import Path
@@ -41,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from sim.studies._dask import add_study_arguments, case_seed, run_cases
+from sim.studies._output import case_records, save_figure, write_csv, write_json
 
 RADII = (1e-8, 1e-7, 1e-6)
 VISCOSITIES = (1e-4, 1e-3, 1e-2)
@@ -180,20 +180,14 @@ def write_outputs(result: dict, out_dir, json_path=None) -> list[Path]:
     import matplotlib.pyplot as plt
     import pandas as pd
 
-    from ptrack.errors import atomic_output
-
     cases = result["cases"]
     paths = []
     if out_dir is not None:
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         df = pd.DataFrame(cases)
-        with atomic_output(out_dir / "electrophoresis.csv", "w") as fh:
-            df.to_csv(fh, index=False)
-        paths.append(out_dir / "electrophoresis.csv")
-        with atomic_output(out_dir / "electrophoresis_table.csv", "w") as fh:
-            pe_decade_table(cases).to_csv(fh, index=False)
-        paths.append(out_dir / "electrophoresis_table.csv")
+        paths.append(write_csv(df, out_dir / "electrophoresis.csv"))
+        paths.append(write_csv(pe_decade_table(cases), out_dir / "electrophoresis_table.csv"))
         fig, ax = plt.subplots(1, 3, figsize=(17, 4.8))
         pe = df["Pe"].to_numpy()
         ratio = (df["v_sim"] / df["v_henry_exact"]).to_numpy()
@@ -224,21 +218,16 @@ def write_outputs(result: dict, out_dir, json_path=None) -> list[Path]:
         ax[2].set(xlabel="|v_Henry| (m/s)", ylabel="|v_sim| (m/s)", title="Simulated vs Henry velocity")
         ax[2].legend(fontsize=8)
         fig.tight_layout()
-        with atomic_output(out_dir / "electrophoresis.png", None) as tmp:
-            fig.savefig(tmp, dpi=120, format="png")
-        plt.close(fig)
-        paths.append(out_dir / "electrophoresis.png")
+        paths.append(save_figure(fig, out_dir / "electrophoresis.png"))
     if json_path is not None:
         keys = ("radius", "viscosity", "eps_r", "E", "v_sim", "v_henry_exact", "v_henry_sf", "v_balance", "Re", "Pe",
                 "err_henry", "err_henry_sf", "err_balance", "re_gt_1")
-        doc = {"cases": [{k: c[k] for k in keys} for c in cases], "wall_time_s": result["wall_time_s"],
+        doc = {"cases": case_records(cases, keys), "wall_time_s": result["wall_time_s"],
                "summary": result["summary"],
                "notes": ["T = 0 (deterministic terminal velocity), forward Euler (phi = 0) with the piecewise drag law",
                          "Pe uses 4 pi (the seed's eq. 3.37 prints 6 pi: its Pe values are 1.5x too high)",
                          "Re > 1 cases leave Stokes drag: the terminal velocity then differs from Henry's"]}
-        with atomic_output(Path(json_path), "w") as fh:
-            json.dump(doc, fh, indent=2)
-        paths.append(Path(json_path))
+        paths.append(write_json(doc, json_path))
     return paths
 
 
