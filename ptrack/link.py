@@ -3,8 +3,10 @@
 :func:`link` wraps ``trackpy.link`` on pixel coordinates. The search range
 is estimated from the data when not given (trackpy makes every user guess
 it): a first pass with a range set by the typical nearest-neighbour distance,
-then a second with 5 standard deviations of the measured per-axis step plus
-the localisation error, capped by the nearest-neighbour bound. In 3D the
+then up to four more with 5 robust standard deviations of the measured
+per-axis step (or 1.5x its 99th percentile if larger: a few drifting particles
+among stuck ones) plus 1 px, at least 3 px, capped by the nearest-neighbour
+distance. In 3D the
 z axis gets its own search range: it carries the z step and the (larger) z
 uncertainty, so z is scaled by its uncertainty rather than mixed in with the
 lateral pixels.
@@ -103,13 +105,15 @@ def link(features: pd.DataFrame, search_range: float | None = None, memory: int 
         if same.sum() < 10:
             break
         def robust(col):
+            # 5 robust sigmas of the steps, or 1.5x their 99th percentile when a minority moves much
+            # more than the rest (stuck and drifting particles in one movie)
             d = np.diff(lk[col].to_numpy())[same] / np.sqrt(step)
-            return 1.4826 * np.median(np.abs(d - np.median(d)))
+            return max(5.0 * 1.4826 * np.median(np.abs(d - np.median(d))), 1.5 * np.percentile(np.abs(d), 99))
         s = max(robust("x_px"), robust("y_px"))
-        new_sr = float(np.clip(5.0 * s + 1.0, 2.0, cap)) if search_range is None else sr
+        new_sr = float(np.clip(s + 1.0, 3.0, cap)) if search_range is None else sr
         new_rng = (new_sr, new_sr)
         if three_d:
-            zsr = z_search_range / pixel_size if z_search_range is not None else float(max(5.0 * robust("z_px") + 1.0, 2.0))
+            zsr = z_search_range / pixel_size if z_search_range is not None else float(max(robust("z_px") + 1.0, 2.0))
             new_rng = (zsr, new_sr, new_sr)
         if np.allclose(new_rng, rng_, rtol=0.05):
             break
