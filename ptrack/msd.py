@@ -632,6 +632,18 @@ def _msd_sums(tr: _Tracks, axes, max_lag):
     return res
 
 
+def _lag_sums(df: pd.DataFrame, axes, max_lag):
+    """Parse ``axes``, prepare the tracks, resolve ``max_lag`` and sum the squared displacements.
+
+    Returns (axes, tracks, L, {axis: (sums (n_p, L), counts (n_p, L))}): the common start of
+    :func:`particle_msd` and :func:`ensemble_msd`.
+    """
+    axes = _parse_axes(axes)
+    tr = _prepare(df, _components(axes))
+    L = _default_max_lag(tr, max_lag)
+    return axes, tr, L, _msd_sums(tr, axes, L)
+
+
 def particle_msd(df: pd.DataFrame, axes=("x", "y", "xy"), max_lag=None) -> pd.DataFrame:
     """Time-averaged MSD of each particle.
 
@@ -651,10 +663,7 @@ def particle_msd(df: pd.DataFrame, axes=("x", "y", "xy"), max_lag=None) -> pd.Da
         and ``n_<axis>`` (displacements averaged). Rows with no displacement
         are dropped.
     """
-    axes = _parse_axes(axes)
-    tr = _prepare(df, _components(axes))
-    L = _default_max_lag(tr, max_lag)
-    sums = _msd_sums(tr, axes, L)
+    axes, tr, L, sums = _lag_sums(df, axes, max_lag)
     n_p = len(tr.particles)
     out = {"particle": np.repeat(tr.particles, L), "lag": np.tile(np.arange(1, L + 1), n_p)}
     out["t"] = out["lag"] * tr.dt
@@ -712,10 +721,8 @@ def ensemble_msd(df: pd.DataFrame, axes=("x", "y", "xy"), max_lag=None) -> pd.Da
         ``n_<axis>`` (number of displacements), ``se_<axis>`` (m^2, standard
         error over whole particles; NaN with fewer than 2 particles).
     """
-    axes = _parse_axes(axes)
-    tr = _prepare(df, _components(axes))
-    L = _default_max_lag(tr, max_lag)
-    res = _ensemble_from_sums(_msd_sums(tr, axes, L), axes, tr.dt, L)
+    axes, tr, L, sums = _lag_sums(df, axes, max_lag)
+    res = _ensemble_from_sums(sums, axes, tr.dt, L)
     res.attrs["frame_interval"] = tr.dt
     return res
 
