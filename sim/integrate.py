@@ -264,6 +264,18 @@ def overdamped_kernel(pos, vel, radius, gamma, fconst, vf, kT, dt, steps, nframe
 
 
 @njit(cache=True, nogil=True)
+def _drag_gamma(g0, stokes, radius, rho_f, mu, ux, uy, uz):
+    """Drag coefficient (kg/s) at the fluid-relative velocity u = v_f - v (m/s).
+
+    The Stokes ``g0`` if ``stokes``, else ``g0 phi_D(Re)`` with the piecewise law at
+    Re = 2 a rho_f |u| / mu.
+    """
+    if stokes:
+        return g0
+    return g0 * drag_factor(2.0 * radius * rho_f * math.sqrt(ux * ux + uy * uy + uz * uz) / mu)
+
+
+@njit(cache=True, nogil=True)
 def trapezoidal_kernel(pos, vel, radius, mass, gamma, charge, fconst, vf, B, rho_f, mu, kT, dt,
                        steps, nframes, box, modes, out_pos, out_vel, noise, phi, tol, max_iter, stokes):
     """Generalised trapezoidal rule (eq. 3.28-3.29). Returns the number of non-converged steps.
@@ -295,10 +307,7 @@ def trapezoidal_kernel(pos, vel, radius, mass, gamma, charge, fconst, vf, B, rho
                 ux = vf[0] - v0[0]
                 uy = vf[1] - v0[1]
                 uz = vf[2] - v0[2]
-                if stokes:
-                    gd = g0
-                else:
-                    gd = g0 * drag_factor(2.0 * radius[i] * rho_f * math.sqrt(ux * ux + uy * uy + uz * uz) / mu)
+                gd = _drag_gamma(g0, stokes, radius[i], rho_f, mu, ux, uy, uz)
                 f0[0] = fconst[i, 0] + fb[0] + gd * ux + q * (v0[1] * B[2] - v0[2] * B[1])
                 f0[1] = fconst[i, 1] + fb[1] + gd * uy + q * (v0[2] * B[0] - v0[0] * B[2])
                 f0[2] = fconst[i, 2] + fb[2] + gd * uz + q * (v0[0] * B[1] - v0[1] * B[0])
@@ -310,13 +319,7 @@ def trapezoidal_kernel(pos, vel, radius, mass, gamma, charge, fconst, vf, B, rho
                         v1[k] = v0[k]
                     converged = False
                     for it in range(max_iter):
-                        wx = vf[0] - v1[0]
-                        wy = vf[1] - v1[1]
-                        wz = vf[2] - v1[2]
-                        if stokes:
-                            g1 = g0
-                        else:
-                            g1 = g0 * drag_factor(2.0 * radius[i] * rho_f * math.sqrt(wx * wx + wy * wy + wz * wz) / mu)
+                        g1 = _drag_gamma(g0, stokes, radius[i], rho_f, mu, vf[0] - v1[0], vf[1] - v1[1], vf[2] - v1[2])
                         c = phi * dt / m
                         l0 = q * (v1[1] * B[2] - v1[2] * B[1])
                         l1 = q * (v1[2] * B[0] - v1[0] * B[2])
