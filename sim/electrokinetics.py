@@ -82,6 +82,12 @@ def _broadcast(**arrays):
         raise UserError(f"array shapes do not broadcast: {shapes}", "give scalars or arrays of one common shape")
 
 
+def _double_layer_inputs(zeta, radius, debye, eps_r) -> dict:
+    """Validated zeta (V), radius (m), Debye length (m) and eps_r, keyed by name for :func:`_broadcast`."""
+    return {"zeta": _arr("zeta", zeta), "radius": _arr("radius", radius, positive=True),
+            "debye": _arr("debye", debye, positive=True), "eps_r": _arr("eps_r", eps_r, positive=True)}
+
+
 def _out(x):
     x = np.asarray(x)
     return x if x.ndim else float(x)
@@ -208,11 +214,7 @@ def colloid_charge(zeta, radius, debye, eps_r, henry: str = "exact"):
     henry : {"exact", "swan_furst"}
         Henry's function to use.
     """
-    zeta = _arr("zeta", zeta)
-    R = _arr("radius", radius, positive=True)
-    lam = _arr("debye", debye, positive=True)
-    eps_r = _arr("eps_r", eps_r, positive=True)
-    zeta, R, lam, eps_r = _broadcast(zeta=zeta, radius=R, debye=lam, eps_r=eps_r)
+    zeta, R, lam, eps_r = _broadcast(**_double_layer_inputs(zeta, radius, debye, eps_r))
     return _out(4.0 * math.pi * eps_r * VACUUM_PERMITTIVITY * zeta * R * _f(R / lam, henry))
 
 
@@ -235,12 +237,9 @@ def henry_velocity(field, zeta, radius, debye, eps_r, viscosity, henry: str = "e
     henry : {"exact", "swan_furst"}
     """
     E = _arr("field", field)
-    zeta = _arr("zeta", zeta)
-    R = _arr("radius", radius, positive=True)
-    lam = _arr("debye", debye, positive=True)
-    eps_r = _arr("eps_r", eps_r, positive=True)
+    inputs = _double_layer_inputs(zeta, radius, debye, eps_r)
     mu = _arr("viscosity", viscosity, positive=True)
-    E, zeta, R, lam, eps_r, mu = _broadcast(field=E, zeta=zeta, radius=R, debye=lam, eps_r=eps_r, viscosity=mu)
+    E, zeta, R, lam, eps_r, mu = _broadcast(field=E, **inputs, viscosity=mu)
     return _out(2.0 * eps_r * VACUUM_PERMITTIVITY * zeta * E * _f(R / lam, henry) / (3.0 * mu))
 
 
@@ -257,12 +256,9 @@ def peclet_number(field, zeta, radius, debye, eps_r, temperature, henry: str = "
     field : V/m; zeta : V; radius, debye : m; eps_r : -; temperature : K.
     """
     E = _arr("field", field)
-    zeta = _arr("zeta", zeta)
-    R = _arr("radius", radius, positive=True)
-    lam = _arr("debye", debye, positive=True)
-    eps_r = _arr("eps_r", eps_r, positive=True)
+    inputs = _double_layer_inputs(zeta, radius, debye, eps_r)
     T = _arr("temperature", temperature, positive=True)
-    E, zeta, R, lam, eps_r, T = _broadcast(field=E, zeta=zeta, radius=R, debye=lam, eps_r=eps_r, temperature=T)
+    E, zeta, R, lam, eps_r, T = _broadcast(field=E, **inputs, temperature=T)
     return _out(4.0 * math.pi * R ** 2 * np.abs(E * zeta) * eps_r * VACUUM_PERMITTIVITY * _f(R / lam, henry)
                 / (BOLTZMANN * T))
 
