@@ -259,6 +259,29 @@ class Workspace:
         return b
 
 
+def _classify_and_draw(flat, scale, B, rng, work):
+    """Classify the pixels against the background mean ``B`` (see :func:`_classify`) and draw their uniforms.
+
+    Returns (cls, n4, r4, u1, u2): u1 one per pixel (the background or ADU table draw),
+    u2 one per class-1 pixel (the residual's CDF inversion).
+    """
+    n = flat.size
+    cls = work.get("cls", n, np.int8)
+    n1, n4, r4 = _classify(flat, scale, B, 1e-9 * max(B, 1.0), _TINY, cls)
+    u1 = rng.random(n, out=work.get("u1", n, np.float64))
+    u2 = rng.random(n1)
+    return cls, n4, r4, u1, u2
+
+
+def _add_pooled_events(flat, scale, B, cls, n4, r4, rng, out, work):
+    """Faint-tail (class 4) pixels: N ~ Poisson(sum r) events dropped with probability ~ r_i, added to ``out``."""
+    if n4:
+        n = flat.size
+        events = rng.random(int(rng.poisson(r4)))
+        _scatter_events(flat, scale, B, cls, n4, events, out, work.get("cum", n, np.float64),
+                        work.get("idx", n, np.int64))
+
+
 def poisson(lam: np.ndarray, rng: np.random.Generator, background: float | None = None, scale: float = 1.0,
             work: Workspace | None = None) -> np.ndarray:
     """Poisson draws (float64) with means ``max(lam, 0) * scale``; deterministic for a given Generator state.
@@ -279,17 +302,10 @@ def poisson(lam: np.ndarray, rng: np.random.Generator, background: float | None 
     if B > 2e4:  # a very bright field: the CDF table would be large; numpy's sampler per pixel
         return rng.poisson(np.maximum(flat, 0.0) * scale).astype(np.float64).reshape(np.shape(lam))
     cdf = _poisson_cdf_table(B)
-    cls = work.get("cls", n, np.int8)
-    eps = 1e-9 * max(B, 1.0)
-    n1, n4, r4 = _classify(flat, scale, B, eps, _TINY, cls)
-    u1 = rng.random(n, out=work.get("u1", n, np.float64))
-    u2 = rng.random(n1)
+    cls, n4, r4, u1, u2 = _classify_and_draw(flat, scale, B, rng, work)
     out = work.get("e", n, np.float64)
     _poisson_split(flat, scale, B, cdf, _guide_table(cdf, 4 * cdf.size), u1, cls, u2, out)
-    if n4:
-        events = rng.random(int(rng.poisson(r4)))
-        _scatter_events(flat, scale, B, cls, n4, events, out, work.get("cum", n, np.float64),
-                        work.get("idx", n, np.int64))
+    _add_pooled_events(flat, scale, B, cls, n4, r4, rng, out, work)
     big = cls == 2
     if big.any():
         out[big] += rng.poisson(np.maximum(flat[big], 0.0) * scale - B)
@@ -417,16 +433,10 @@ def expose(photons: np.ndarray, camera: Camera, rng: np.random.Generator, work: 
             _ADU_TABLES.clear()
         _ADU_TABLES[key] = tables
     cdf, guide, j0, acdf, aguide = tables
-    cls = work.get("cls", n, np.int8)
-    eps = 1e-9 * max(B, 1.0)
-    n1, n4, r4 = _classify(flat, qe, B, eps, _TINY, cls)
-    u1 = rng.random(n, out=work.get("u1", n, np.float64))
-    u2 = rng.random(n1)
+    cls, n4, r4, u1, u2 = _classify_and_draw(flat, qe, B, rng, work)
     extra = work.get("extra", n, np.float64)
     extra.fill(0.0)
-    if n4:
-        events = rng.random(int(rng.poisson(r4)))
-        _scatter_events(flat, qe, B, cls, n4, events, extra, work.get("cum", n, np.float64), work.get("idx", n, np.int64))
+    _add_pooled_events(flat, qe, B, cls, n4, r4, rng, extra, work)
     bigm = cls == 2
     big = rng.poisson(np.maximum(flat[bigm], 0.0) * qe - B).astype(np.float64) if bigm.any() else np.zeros(0)
     lowm = cls == 3
