@@ -16,28 +16,33 @@ _OPT = Optics()
 _CAM = Camera()
 
 
+def _number(group, flag: str, default, what: str, fmt: str = "", kind=float) -> None:
+    """A numeric option whose help ends with its default, formatted with ``fmt``."""
+    group.add_argument(flag, type=kind, default=default, help=f"{what} (default {default:{fmt}})")
+
+
 def add_optics_camera_arguments(p: argparse.ArgumentParser) -> None:
     """Optics and camera options (SI units; defaults: the seed's 63x / NA 0.75 objective and Zyla 5.5 camera)."""
     # let negative numbers in scientific notation (e.g. --focal-plane -2e-6) be values, not options
     p._negative_number_matcher = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$")
     g = p.add_argument_group("optics (SI units)")
-    g.add_argument("--na", type=float, default=_OPT.na, help=f"numerical aperture (default {_OPT.na})")
-    g.add_argument("--wavelength", type=float, default=_OPT.wavelength, help=f"emission wavelength, m (default {_OPT.wavelength:g})")
-    g.add_argument("--medium-index", type=float, default=_OPT.medium_index, help=f"refractive index of the sample medium (default {_OPT.medium_index})")
-    g.add_argument("--immersion-index", type=float, default=_OPT.immersion_index, help=f"refractive index of the immersion medium (default {_OPT.immersion_index})")
-    g.add_argument("--magnification", type=float, default=_OPT.magnification, help=f"magnification (default {_OPT.magnification:g})")
+    _number(g, "--na", _OPT.na, "numerical aperture")
+    _number(g, "--wavelength", _OPT.wavelength, "emission wavelength, m", "g")
+    _number(g, "--medium-index", _OPT.medium_index, "refractive index of the sample medium")
+    _number(g, "--immersion-index", _OPT.immersion_index, "refractive index of the immersion medium")
+    _number(g, "--magnification", _OPT.magnification, "magnification", "g")
     g.add_argument("--astigmatism", type=float, default=_OPT.astigmatism,
                    help="astigmatic wavefront amplitude at the pupil edge, m (cylindrical lens; 0 = none; e.g. 1.2e-7)")
     g.add_argument("--radius", type=float, default=None, help="particle radius, m (default: the table's 'radius' column, else a point source)")
     c = p.add_argument_group("camera and light")
-    c.add_argument("--pixel-pitch", type=float, default=_CAM.pixel_pitch, help=f"camera pixel pitch, m (default {_CAM.pixel_pitch:g})")
-    c.add_argument("--photons", type=float, default=_CAM.photons, help=f"photons per particle per exposure (brightfield: removed from the background) (default {_CAM.photons:g})")
-    c.add_argument("--background", type=float, default=_CAM.background, help=f"background photons per pixel per exposure (default {_CAM.background:g})")
-    c.add_argument("--qe", type=float, default=_CAM.quantum_efficiency, help=f"quantum efficiency (default {_CAM.quantum_efficiency})")
-    c.add_argument("--read-noise", type=float, default=_CAM.read_noise, help=f"read noise, e- rms (default {_CAM.read_noise})")
-    c.add_argument("--gain", type=float, default=_CAM.gain, help=f"gain, ADU per e- (default {_CAM.gain})")
-    c.add_argument("--offset", type=float, default=_CAM.offset, help=f"offset, ADU (default {_CAM.offset:g})")
-    c.add_argument("--bit-depth", type=int, default=_CAM.bit_depth, help=f"bit depth (default {_CAM.bit_depth})")
+    _number(c, "--pixel-pitch", _CAM.pixel_pitch, "camera pixel pitch, m", "g")
+    _number(c, "--photons", _CAM.photons, "photons per particle per exposure (brightfield: removed from the background)", "g")
+    _number(c, "--background", _CAM.background, "background photons per pixel per exposure", "g")
+    _number(c, "--qe", _CAM.quantum_efficiency, "quantum efficiency")
+    _number(c, "--read-noise", _CAM.read_noise, "read noise, e- rms")
+    _number(c, "--gain", _CAM.gain, "gain, ADU per e-")
+    _number(c, "--offset", _CAM.offset, "offset, ADU", "g")
+    _number(c, "--bit-depth", _CAM.bit_depth, "bit depth", kind=int)
     c.add_argument("--brightfield", action="store_true",
                    help="brightfield instead of fluorescence (--background is the illumination, photons per pixel)")
     c.add_argument("--brightfield-model", choices=["absorption", "coherent"], default="absorption",
