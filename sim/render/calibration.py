@@ -25,9 +25,10 @@ from pathlib import Path
 import numpy as np
 
 from ptrack.errors import UserError, atomic_output, check_positive
+from ptrack.table import to_jsonable
 
 from .camera import Camera, expose
-from .movie import _add_patches, _jsonable
+from .movie import _add_patches
 from .optics import Optics, check_sampling, otf_planes, patch_size, sample_pixel_size, size_transfer
 
 __all__ = ["render_calibration", "calibration_heights"]
@@ -187,6 +188,6 @@ def render_calibration(out_dir, z_min: float = -60e-6, z_max: float = 60e-6, z_s
               "optics": optics.to_dict(), "camera": camera.to_dict(), "compression": compression}
     ppath = out_dir / "calib_params.json"
     with atomic_output(ppath, "w") as fh:
-        json.dump(_jsonable(params), fh, indent=2, sort_keys=True)
+        json.dump(to_jsonable(params), fh, indent=2, sort_keys=True)
         fh.write("\n")
     return {"stack": stack, "z": zpath, "params": ppath}

@@ -628,5 +628,3 @@ def render_movie(table: pd.DataFrame, out_dir, shape=(256, 256), optics: Optics 
     return {"movie": movie, "truth": truth_path, "params": params_path}
 
 
-# sim.render.calibration imports this name; the conversion itself lives in ptrack.table.
-_jsonable = to_jsonable
