@@ -626,5 +626,3 @@ def render_movie(table: pd.DataFrame, out_dir, shape=(256, 256), optics: Optics 
         json.dump(to_jsonable(params), fh, indent=2, sort_keys=True)
         fh.write("\n")
     return {"movie": movie, "truth": truth_path, "params": params_path}
-
-
