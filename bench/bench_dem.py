@@ -131,7 +131,8 @@ def main(argv=None):
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--contact-window", action="store_true",
                     help="for N > 1000 also time --steps-big steps in the packed phase (after an untimed "
-                         "fast-forward to t = 0.08 s with dt = 4e-6 s)")
+                         "fast-forward to --ff-time with dt = 4e-6 s)")
+    ap.add_argument("--ff-time", type=float, default=0.12, help="fast-forward target time (s), default 0.12")
     args = ap.parse_args(argv)
     import numba
 
@@ -162,7 +163,7 @@ def main(argv=None):
                   flush=True)
             if n > 1000 and args.contact_window:
                 s.dt = 4e-6
-                s.run(int(round((0.08 - s.t) / 4e-6)))  # untimed fast-forward into the packed phase
+                s.run(int(round((args.ff_time - s.t) / 4e-6)))  # untimed fast-forward into the packed phase
                 s.dt = 1e-6
                 t0 = time.perf_counter()
                 c0 = time.process_time()
@@ -170,7 +171,7 @@ def main(argv=None):
                 wall = time.perf_counter() - t0
                 cpu = time.process_time() - c0
                 rate = n * steps / wall
-                note = f"packed phase t = 0.08 s: {steps} steps, {args.steps} extrapolated: {wall * args.steps / steps:.1f} s"
+                note = f"packed phase t = {args.ff_time:g} s: {steps} steps, {args.steps} extrapolated: {wall * args.steps / steps:.1f} s"
                 rows.append((n, steps, th, wall, rate, s.diag[D_N_CONTACTS] / n, s.n_builds, st, note, cpu))
                 print(f"N={n:7d} steps={steps:7d} threads={th} wall={wall:8.2f} s cpu={cpu:8.2f} s {rate:10.3e} "
                       f"particle-steps/s  contacts/particle={s.diag[D_N_CONTACTS] / n:5.2f} builds={s.n_builds:5d} "
