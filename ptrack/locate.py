@@ -2,7 +2,12 @@
 
 Detection: a Gaussian matched filter (after a 3x3 median against hot pixels)
 of the background-subtracted frame, local maxima above ``snr`` times the
-filtered noise, at least ``separation`` px apart.
+filtered noise, at least ``separation`` px apart. :func:`find_peaks` does this
+on a whole preprocessed frame; :func:`detect_raw` (the default for
+fluorescence movies) gives the same peaks from the raw frame while filtering
+only small tiles around candidates found on a block-averaged copy, so a
+2560 x 2160 frame costs one block average plus work proportional to the
+number of particles.
 
 Localisation: a maximum-likelihood fit of a pixel-integrated 2D Gaussian
 (position, photons, background, width) to the raw counts of each spot,
