@@ -99,15 +99,18 @@ def _law(model, cp, delta, nx, ny, nz, d, ri, rj, wall, meff,
     mu_d = 0.0
     if model == 1:
         kn = cp[0]
-        eta = 2.0 * cp[2] * math.sqrt(kn * meff)
+        # one division and one square root per contact (the hot path)
+        sq = math.sqrt(kn * meff)
+        eta = 2.0 * cp[2] * sq
         fc = kn * delta
         fn = fc - eta * vn
         kt_eff = cp[1]
         damp_t = cp[3] * eta
         mu_s = cp[4]
         mu_d = cp[4]
-        w2 = kn / meff
-        dr = eta / meff
+        inv = 1.0 / meff
+        w2 = kn * inv
+        dr = eta * inv
     else:
         if wall:
             eps = delta / ri
@@ -155,36 +158,30 @@ def _law(model, cp, delta, nx, ny, nz, d, ri, rj, wall, meff,
     tfy = 0.0
     tfz = 0.0
     if kt_eff > 0.0:
-        # rotate the stored spring into the current tangent plane, keep its length
+        # project the stored spring onto the current tangent plane (as LAMMPS
+        # gran/hooke/history does; the length change is second order in the rotation)
         sx = hist[k, 0]
         sy = hist[k, 1]
         sz = hist[k, 2]
-        s2 = sx * sx + sy * sy + sz * sz
         sn = sx * nx + sy * ny + sz * nz
-        if s2 > 0.0 and sn != 0.0:
-            sx -= sn * nx
-            sy -= sn * ny
-            sz -= sn * nz
-            t2 = sx * sx + sy * sy + sz * sz
-            if t2 > 0.0:
-                sc = math.sqrt(s2 / t2)
-                sx *= sc
-                sy *= sc
-                sz *= sc
+        sx -= sn * nx
+        sy -= sn * ny
+        sz -= sn * nz
         sx += vtx * dt
         sy += vty * dt
         sz += vtz * dt
         tfx = -kt_eff * sx - damp_t * vtx
         tfy = -kt_eff * sy - damp_t * vty
         tfz = -kt_eff * sz - damp_t * vtz
-        ft = math.sqrt(tfx * tfx + tfy * tfy + tfz * tfz)
+        ft2 = tfx * tfx + tfy * tfy + tfz * tfz
         if model == 1:
             flim = mu_s * abs(fn)
             fslip = flim
         else:
             flim = mu_s * abs(fc)
             fslip = mu_d * abs(fc)
-        if ft > flim and mu_s >= 0.0:
+        if ft2 > flim * flim:
+            ft = math.sqrt(ft2)
             if ft > 0.0:
                 sc = fslip / ft
                 tfx *= sc
