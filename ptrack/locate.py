@@ -380,13 +380,25 @@ def detect_raw(frame, sigma: float, snr: float = 7.0, separation: float | None =
     cthr = coarse_snr * cnoise
     # candidates: blocks above threshold; each is searched at full resolution together with its 8
     # neighbour blocks (a spot's peak may sit in the block next to its brightest coarse value)
-    cr, cc = np.nonzero(coarse > cthr)
+    above = coarse > cthr
+    cr, cc = np.nonzero(above)
     nbh, nbw = coarse.shape
-    boxes = np.empty((len(cr), 4), np.int64)
-    boxes[:, 0] = np.maximum(cr - 1, 0) * ds
-    boxes[:, 1] = np.where(cr + 2 >= nbh, H, (cr + 2) * ds) - 1
-    boxes[:, 2] = np.maximum(cc - 1, 0) * ds
-    boxes[:, 3] = np.where(cc + 2 >= nbw, W, (cc + 2) * ds) - 1
+    if len(cr) <= 256:
+        boxes = np.empty((len(cr), 4), np.int64)
+        boxes[:, 0] = np.maximum(cr - 1, 0) * ds
+        boxes[:, 1] = np.where(cr + 2 >= nbh, H, (cr + 2) * ds) - 1
+        boxes[:, 2] = np.maximum(cc - 1, 0) * ds
+        boxes[:, 3] = np.where(cc + 2 >= nbw, W, (cc + 2) * ds) - 1
+    else:
+        # many candidates: merge the grown candidate blocks into connected regions (one labelling
+        # pass) so overlapping neighbourhoods are not filtered several times
+        mask = cv2.dilate(above.astype(np.uint8), np.ones((3, 3), np.uint8))
+        _, _, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+        st = stats[1:].astype(np.int64)
+        top, left = st[:, cv2.CC_STAT_TOP], st[:, cv2.CC_STAT_LEFT]
+        bottom, right = top + st[:, cv2.CC_STAT_HEIGHT], left + st[:, cv2.CC_STAT_WIDTH]
+        boxes = np.stack([top * ds, np.where(bottom >= nbh, H, bottom * ds) - 1,
+                          left * ds, np.where(right >= nbw, W, right * ds) - 1], axis=1).astype(np.int64)
     ks = int(2 * math.ceil(2.5 * max(0.5, sigma)) + 1)
     kern = cv2.getGaussianKernel(ks, max(0.5, float(sigma)), cv2.CV_64F).ravel()
     # noise of the filtered image, from a grid of sample tiles
