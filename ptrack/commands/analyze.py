@@ -24,7 +24,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--radius", metavar="R", type=float, required=True, help="particle radius (m)")
     g.add_argument("--viscosity", metavar="MU", type=float, required=True, help="fluid viscosity (Pa s)")
     g.add_argument("--temperature", metavar="T", type=float, required=True, help="temperature (K)")
-    g.add_argument("--wall-z", metavar="Z", type=float, default=0.0, help="z of the wall in calibration coordinates (m, 3D)")
+    g.add_argument("--wall-z", metavar="Z", type=float, default=0.0, help="z of the wall in calibration coordinates (m, 3D; negative values as --wall-z=-3e-6)")
     g.add_argument("--height", metavar="H", type=float, help="assumed centre height above the wall (m, 2D)")
     g.add_argument("--subtract-drift", action="store_true", help="remove the ensemble drift before estimating D")
     g.add_argument("--estimator", choices=("cve", "ols"), default="cve", help="D estimator (default cve)")

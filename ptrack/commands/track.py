@@ -24,7 +24,7 @@ def add_track_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--calib", metavar="CALIB", help="defocus calibration stack (TIFF): gives z by GDPT")
     g.add_argument("--calib-z", metavar="CSV", help="CSV with columns page, z (m) for the calibration pages")
     g.add_argument("--calib-step", metavar="DZ", type=float, help="z step between calibration pages (m)")
-    g.add_argument("--calib-z0", metavar="Z0", type=float, default=0.0, help="z of page 0 (m, default 0)")
+    g.add_argument("--calib-z0", metavar="Z0", type=float, default=0.0, help="z of page 0 (m, default 0; negative values as --calib-z0=-3e-6)")
     g.add_argument("--cm-min", type=float, default=0.5, help="correlation threshold Cm for z (default 0.5)")
     g = p.add_argument_group("image")
     g.add_argument("--brightfield", action="store_true", help="dark particles on a bright field (inverted first)")
