@@ -152,7 +152,8 @@ def run_scene(scene: Scene, out_dir, seed=None, progress: bool = True, resume: b
     progress : bool
         tqdm progress bar on stderr.
     resume : bool
-        Passed to the DEM engine; free-particle runs always start afresh.
+        Continue a DEM run from its checkpoint; refused (UserError) for
+        free-particle runs, which do not checkpoint.
     max_rows_per_chunk : int
         Rows buffered before a chunk is appended to the Parquet file.
 
@@ -172,6 +173,10 @@ def run_scene(scene: Scene, out_dir, seed=None, progress: bool = True, resume: b
     if scene.interactions is not None and getattr(scene.interactions, "any_pair_force", False):
         from sim.dem import run_dem
         return run_dem(scene, out_dir, resume=resume, progress=progress)
+    if resume:
+        raise UserError("--resume applies to DEM runs (scenes with pair forces), which checkpoint; "
+                        "this free-particle scene has no checkpoint",
+                        "run it again without --resume (free-particle runs are fast and deterministic for a seed)")
 
     t0 = time.perf_counter()
     out_dir.mkdir(parents=True, exist_ok=True)

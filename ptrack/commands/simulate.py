@@ -30,7 +30,7 @@ def run(args) -> int:
     if not args.quiet:
         logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
     scene = load_scene(args.scene)
-    res = run_scene(scene, args.out, seed=args.seed, progress=not args.quiet)
+    res = run_scene(scene, args.out, seed=args.seed, progress=not args.quiet, resume=args.resume)
     if not args.quiet:
         ch = getattr(res, "choice", None)
         if ch is not None:
