@@ -1,11 +1,10 @@
 """Preprocessing: inversion, background (spatial/temporal), threshold, median; brightfield needs inversion."""
 import numpy as np
-import pandas as pd
 import pytest
 from scipy.spatial import cKDTree
 
 from ptrack.errors import UserError
-from ptrack.preprocess import (invert, median3, noise_sigma, prepare, spatial_background, subtract_background,
+from ptrack.preprocess import (invert, median3, noise_sigma, prepare, subtract_background,
                                temporal_background, threshold)
 
 
