@@ -142,3 +142,36 @@ def test_rendered_airy_spots_within_1p2_of_cramer_rao():
     assert np.all(np.abs(e.mean(0)) < 0.01)
     assert np.all(rmse < 1.2 * crb), (rmse, crb)
     assert np.all(rmse > 0.9 * crb)
+
+
+@pytest.mark.parametrize("fwhm_apart", [1.3, 1.0])
+def test_close_pairs_both_found_and_unbiased(fwhm_apart):
+    """Two spots 1.3 FWHM apart (two maxima of the matched filter, formerly one suppressed by the 2.5 sigma
+    separation) and 1.0 FWHM apart (a single maximum: split by the two-spot likelihood test) are both found,
+    and the joint fit keeps their centres unbiased (fitted one by one, each is pulled towards the other)."""
+    rng = np.random.default_rng(11)
+    s, N, bg, gain, offset = 1.5, 3000.0, 10.0, 2.0, 100.0
+    d = fwhm_apart * 2.3548 * s
+    errs, along = [], []
+    for _ in range(4):
+        cx, cy = grid_positions((160, 160), 28, rng, margin=16)
+        ang = rng.uniform(0, np.pi, cx.size)
+        ux, uy = np.cos(ang) * d / 2, np.sin(ang) * d / 2
+        xs, ys = np.r_[cx + ux, cx - ux], np.r_[cy + uy, cy - uy]
+        frame = gaussian_frame(xs, ys, (160, 160), s, N, bg, gain, offset, rng)
+        df = locate(frame, sigma=s, gain=gain, offset=offset, read_noise=1.0)
+        found = df[["x_px", "y_px"]].to_numpy()
+        true = np.c_[xs, ys]
+        dist, idx = cKDTree(found).query(true)
+        assert np.all(dist < 1.0), f"{np.sum(dist >= 1.0)} of {len(true)} spots missed"
+        assert len(np.unique(idx)) == len(true) and len(df) == len(true)     # one localisation each
+        e = found[idx] - true
+        errs.append(e)
+        # error along the pair axis (a one-by-one fit pulls each centre towards its partner: negative)
+        n = len(cx)
+        along.append(np.r_[(e[:n, 0] * ux + e[:n, 1] * uy), -(e[n:, 0] * ux + e[n:, 1] * uy)] / (d / 2))
+    e = np.concatenate(errs)
+    rmse = np.sqrt(np.mean(np.sum(e ** 2, axis=1) / 2))
+    assert rmse < 0.1, rmse
+    along = np.concatenate(along)
+    assert abs(np.mean(along)) < 4 * np.std(along) / np.sqrt(len(along)) + 0.01, np.mean(along)
