@@ -989,8 +989,14 @@ def _split_spots(img, rows, cols, params, cand, half, sigma0, gain, offset, rvar
         x0[1] = xc - ca
         y0[1] = yc - sa
         conv, f2 = _fit_group(img, r0, r1, c0, c1, x0, y0, a0, sigma0, gain, offset, rvar, poisson, max_iter, th, vv)
-        llr[k] = f2 - f1
-        if not conv or f2 - f1 < min_llr:
+        gain_ll = f2 - f1
+        if not poisson:
+            # least squares: f = -RSS/2 in image units; in log-likelihood units divide by the noise
+            # variance, estimated from the two-spot residual
+            s2 = -2.0 * f2 / max(nr * nc - 8, 1)
+            gain_ll = gain_ll / max(s2, 1e-300)
+        llr[k] = gain_ll
+        if not conv or gain_ll < min_llr:
             continue
         N1 = th[2]
         N2 = th[5]
