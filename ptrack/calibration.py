@@ -372,9 +372,67 @@ def _quadratic_peak(z, c, k, n_points=None, drop: float = 0.15):
     return float(z[k] + np.clip(t, zz[0], zz[-1]))
 
 
+def _prepare_matching(img, calib: Calibration, smooth: float, margin: int):
+    """Smoothed, zero-padded frame and smoothed templates (the frame is background-subtracted: 0 = background)."""
+    import cv2
+
+    m = int(margin)
+    pad = calib.size // 2 + m + 1
+    img = np.ascontiguousarray(img, np.float32)
+    tmpl = list(calib.templates)
+    if smooth and smooth > 0:
+        img = cv2.GaussianBlur(img, (0, 0), sigmaX=float(smooth))
+        tmpl = [cv2.GaussianBlur(t, (0, 0), sigmaX=float(smooth)) for t in tmpl]
+    padded = cv2.copyMakeBorder(img, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0.0)
+    return padded, pad, tmpl
+
+
+def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm_drop):
+    """Best template, z, sub-pixel x, y and Cm of the particle image near frame pixel (r, c).
+
+    Returns a dict with ``x_px``, ``y_px``, ``z``, ``cm``, ``page`` and the
+    placement of the best template in ``padded`` (``top``, ``left`` integer
+    corner, ``di``, ``dj`` sub-pixel shift).
+    """
+    import cv2
+
+    ri, ci = int(round(r)) + pad, int(round(c)) + pad
+    maps = []
+    for k, t in enumerate(tmpl):
+        h = t.shape[0] // 2
+        win = padded[ri - h - m: ri + h + m + 1, ci - h - m: ci + h + m + 1]
+        maps.append(cv2.matchTemplate(win, t, cv2.TM_CCOEFF_NORMED))
+    maps = np.nan_to_num(np.stack(maps), nan=-1.0)   # all (2m+1, 2m+1)
+    peak = _subpixel_peaks(maps)
+    k = int(np.argmax(peak))
+    cm = float(peak[k])
+    z = _quadratic_peak(calib.z, peak, k, z_points, cm_drop)
+    mp = maps[k]
+    i, j = np.unravel_index(int(np.argmax(mp)), mp.shape)
+    di = dj = 0.0
+    if 0 < i < mp.shape[0] - 1:
+        di = _gauss3(mp[i - 1, j], mp[i, j], mp[i + 1, j])
+    if 0 < j < mp.shape[1] - 1:
+        dj = _gauss3(mp[i, j - 1], mp[i, j], mp[i, j + 1])
+    h = tmpl[k].shape[0] // 2
+    top, left = ri - h - m + i, ci - h - m + j       # template corner in padded coordinates
+    return {"x_px": left - pad + dj + calib.centers[k, 1], "y_px": top - pad + di + calib.centers[k, 0],
+            "z": z, "cm": min(cm, 1.0), "page": k, "top": int(top), "left": int(left), "di": float(di),
+            "dj": float(dj)}
+
+
+def _mass(padded, hit, tmpl):
+    T = tmpl[hit["page"]].shape[0]
+    sub = padded[hit["top"]:hit["top"] + T, hit["left"]:hit["left"] + T]
+    return float(np.clip(sub, 0, None).sum())
+
+
 def match_templates(img, rows, cols, calib: Calibration, margin: int = 4, cm_min: float = 0.5,
                     smooth: float = 1.5, z_points: int | None = None, cm_drop: float = 0.15):
     """z, refined x, y and Cm of particles near (rows, cols) by normalised cross-correlation.
+
+    Each candidate is matched independently against the frame as it is (no
+    removal of neighbouring images; :func:`locate_3d` does that).
 
     Parameters
     ----------
@@ -403,53 +461,16 @@ def match_templates(img, rows, cols, calib: Calibration, margin: int = 4, cm_min
     pandas.DataFrame
         ``x_px``, ``y_px`` (px), ``z`` (m), ``cm``, ``page`` (best template), ``mass``.
     """
-    import cv2
-
-    Tmax = calib.size
     m = int(margin)
-    pad = Tmax // 2 + m + 1
-    img = np.ascontiguousarray(img, np.float32)
-    tmpl = list(calib.templates)
-    if smooth and smooth > 0:
-        img = cv2.GaussianBlur(img, (0, 0), sigmaX=float(smooth))
-        tmpl = [cv2.GaussianBlur(t, (0, 0), sigmaX=float(smooth)) for t in tmpl]
-    padded = cv2.copyMakeBorder(img, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0.0)
-    K = len(calib.z)
-    halves = [t.shape[0] // 2 for t in tmpl]
+    padded, pad, tmpl = _prepare_matching(img, calib, smooth, m)
     out = {k: [] for k in ("x_px", "y_px", "z", "cm", "page", "mass")}
     for r, c in zip(np.asarray(rows, float), np.asarray(cols, float)):
-        ri, ci = int(round(r)) + pad, int(round(c)) + pad
-        maps = []
-        for k in range(K):
-            h = halves[k]
-            win = padded[ri - h - m: ri + h + m + 1, ci - h - m: ci + h + m + 1]
-            maps.append(cv2.matchTemplate(win, tmpl[k], cv2.TM_CCOEFF_NORMED))
-        maps = np.nan_to_num(np.stack(maps), nan=-1.0)   # all (2m+1, 2m+1)
-        peak = _subpixel_peaks(maps)
-        k = int(np.argmax(peak))
-        cm = float(peak[k])
-        if cm < cm_min:
+        hit = _match_one(padded, pad, r, c, tmpl, calib, m, z_points, cm_drop)
+        if hit["cm"] < cm_min:
             continue
-        z = _quadratic_peak(calib.z, peak, k, z_points, cm_drop)
-        mp = maps[k]
-        i, j = np.unravel_index(int(np.argmax(mp)), mp.shape)
-        di = dj = 0.0
-        if 0 < i < mp.shape[0] - 1:
-            di = _gauss3(mp[i - 1, j], mp[i, j], mp[i + 1, j])
-        if 0 < j < mp.shape[1] - 1:
-            dj = _gauss3(mp[i, j - 1], mp[i, j], mp[i, j + 1])
-        # template top-left at window (i, j) -> frame coordinates
-        h = halves[k]
-        y = (ri - pad) - h - m + i + di + calib.centers[k, 0]
-        x = (ci - pad) - h - m + j + dj + calib.centers[k, 1]
-        T = 2 * h + 1
-        sub = padded[ri - h - m + i: ri - h - m + i + T, ci - h - m + j: ci - h - m + j + T]
-        out["x_px"].append(x)
-        out["y_px"].append(y)
-        out["z"].append(z)
-        out["cm"].append(min(cm, 1.0))
-        out["page"].append(k)
-        out["mass"].append(float(np.clip(sub, 0, None).sum()))
+        hit["mass"] = _mass(padded, hit, tmpl)
+        for key in out:
+            out[key].append(hit[key])
     df = pd.DataFrame(out)
     if len(df) > 1:
         # one particle found twice (ring split in pieces): keep the better correlation
@@ -463,8 +484,212 @@ def match_templates(img, rows, cols, calib: Calibration, margin: int = 4, cm_min
     return df
 
 
+def _shifted(t, di, dj):
+    """Template ``t`` moved by a sub-pixel (di, dj) (bilinear, zeros outside)."""
+    import cv2
+
+    if di == 0.0 and dj == 0.0:
+        return t
+    M = np.float32([[1, 0, dj], [0, 1, di]])
+    return cv2.warpAffine(t, M, (t.shape[1], t.shape[0]), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                          borderValue=0.0)
+
+
+class _Residual:
+    """The smoothed, padded frame minus the template models of the particles accepted so far.
+
+    The padding (outside the frame) stays 0: a model is fitted and removed
+    only over the pixels inside the frame, so a particle cut by the edge is
+    scaled by its visible part.
+    """
+
+    def __init__(self, padded, pad, tmpl, noise):
+        self.noise = max(float(noise), 1e-6)
+        self.img = padded
+        self.pad = pad
+        self.tmpl = tmpl
+        self.inside = np.zeros(padded.shape, bool)
+        self.inside[pad:padded.shape[0] - pad, pad:padded.shape[1] - pad] = True
+
+    def model(self, hit):
+        """(slices, model image) of one hit, amplitude fitted by least squares to the current residual."""
+        t = _shifted(self.tmpl[hit["page"]], hit["di"], hit["dj"])
+        T = t.shape[0]
+        sl = (slice(hit["top"], hit["top"] + T), slice(hit["left"], hit["left"] + T))
+        win = self.img[sl]
+        ins = self.inside[sl]
+        tt = np.where(ins, t, 0.0)
+        den = float((tt * tt).sum())
+        a = max(float((tt * win).sum()) / den, 0.0) if den > 0 else 0.0
+        hit["snr"] = a * math.sqrt(den) / self.noise
+        hit["mass"] = a * float(np.clip(t, 0, None).sum())   # whole image, also the part outside the frame
+        return sl, (a * tt).astype(np.float32)
+
+    def subtract(self, sl, mod):
+        self.img[sl] -= mod
+
+    def add(self, sl, mod):
+        self.img[sl] += mod
+
+
+def _candidates(padded, pad, tmpl, calib: Calibration, shape, mask, n_templates: int, c_min: float,
+                exclude=None, exclude_r: float = 3.0):
+    """Candidate centres (row, col) by correlating a few representative templates over the whole frame.
+
+    The GDPTlab way: the frame is correlated with ``n_templates`` pages spread
+    over the calibrated range; each map is shifted so that its value sits at
+    the particle centre of its template; the maximum over templates is
+    searched for local maxima (3 x 3) above ``c_min`` inside ``mask`` (pixels
+    near signal). Returned in decreasing correlation.
+    """
+    import cv2
+
+    H, W = shape
+    K = len(tmpl)
+    pages = np.unique(np.round(np.linspace(0, K - 1, min(n_templates, K))).astype(int))
+    cmap = np.full((H, W), -1.0, np.float32)
+    for k in pages:
+        t = tmpl[k]
+        R = cv2.matchTemplate(padded, t, cv2.TM_CCOEFF_NORMED)
+        oy, ox = int(round(calib.centers[k, 0])), int(round(calib.centers[k, 1]))
+        R = np.nan_to_num(R[pad - oy: pad - oy + H, pad - ox: pad - ox + W], nan=-1.0)
+        np.maximum(cmap, R, out=cmap)
+    local = cmap >= cv2.dilate(cmap, np.ones((3, 3), np.uint8))
+    ok = local & mask & (cmap >= c_min)
+    r, c = np.nonzero(ok)
+    v = cmap[r, c]
+    order = np.argsort(-v, kind="stable")
+    r, c, v = r[order], c[order], v[order]
+    if exclude is not None and len(exclude) and len(r):
+        from scipy.spatial import cKDTree
+
+        d, _ = cKDTree(exclude).query(np.column_stack([r, c]).astype(float))
+        keep = d > exclude_r
+        r, c, v = r[keep], c[keep], v[keep]
+    return r, c, v
+
+
+def _overlap_snr(hit, hits, tmpl) -> float:
+    """Largest amplitude SNR of the accepted particles whose template windows overlap ``hit``'s (0 if none)."""
+    best = 0.0
+    T = tmpl[hit["page"]].shape[0]
+    for h in hits:
+        Th = tmpl[h["page"]].shape[0]
+        if (abs(h["top"] + Th / 2 - hit["top"] - T / 2) < (T + Th) / 2
+                and abs(h["left"] + Th / 2 - hit["left"] - T / 2) < (T + Th) / 2):
+            best = max(best, h["snr"])
+    return best
+
+
 def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, margin: int = 4,
-              cm_min: float = 0.5, min_area: int = 4, smooth: float = 1.5) -> pd.DataFrame:
-    """Detect defocused particles in a background-subtracted frame and measure x, y, z, Cm."""
-    rows, cols, _ = detect_blobs(img, sigma=sigma, snr=snr, min_area=min_area)
-    return match_templates(img, rows, cols, calib, margin=margin, cm_min=cm_min, smooth=smooth)
+              cm_min: float = 0.5, min_area: int = 4, smooth: float = 1.5, n_templates: int = 7,
+              c_candidate: float = 0.3, rounds: int = 2, refine: int = 2, z_points: int | None = None,
+              cm_drop: float = 0.15, snr_fit: float = 40.0, snr_rel: float = 0.15,
+              min_mass: float = 0.5) -> pd.DataFrame:
+    """Detect defocused particles in a background-subtracted frame and measure x, y, z, Cm.
+
+    1. Candidates: local maxima of the frame's correlation with a few
+       representative templates (:func:`_candidates`), near pixels above
+       ``snr`` noise units (after a ``sigma`` px blur).
+    2. In decreasing order of that correlation, each candidate is matched
+       against every template (sub-pixel x, y, parabolic z, Cm) on the
+       *residual* frame, from which the template models of the particles
+       already accepted were subtracted (amplitude by least squares). A
+       ring-shaped or astigmatic image found at several points is explained
+       by its first (best) match and its other candidates then fall below
+       ``cm_min``; two overlapping images are each matched with the other
+       removed, so Cm keeps its meaning (the correlation of one particle's
+       own image with its template).
+    3. ``refine`` passes re-match every accepted particle with all the
+       others removed (the first matches saw their neighbours); ``rounds``
+       repeats the candidate search on the residual (images hidden under
+       brighter ones).
+
+    Returns
+    -------
+    pandas.DataFrame
+        ``x_px``, ``y_px`` (px), ``z`` (m), ``cm``, ``page``, ``mass``
+        (photo-signal of the fitted model, smoothed ADU), ``edge`` (True when
+        the best template's window leaves the frame: a cut image, matched on
+        its visible part).
+    """
+    import cv2
+
+    from .preprocess import median3, noise_sigma
+
+    img = np.ascontiguousarray(img, np.float32)
+    H, W = img.shape
+    m = int(margin)
+    padded, pad, tmpl = _prepare_matching(img, calib, smooth, m)
+    sm = cv2.GaussianBlur(median3(img), (0, 0), sigmaX=float(sigma))
+    thr = float(np.median(sm[::5, ::5])) + snr * max(noise_sigma(sm), 1e-6)
+    signal = (sm > thr).astype(np.uint8)
+    if min_area > 1:
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(signal, connectivity=8)
+        small = np.nonzero(stats[:, cv2.CC_STAT_AREA] < min_area)[0]
+        small = small[small > 0]
+        if small.size:
+            signal[np.isin(labels, small)] = 0
+    if not signal.any():
+        return pd.DataFrame({k: [] for k in ("x_px", "y_px", "z", "cm", "page", "mass", "edge")})
+    # a ring's dark centre is still a candidate: grow the signal mask by the largest image radius
+    rad = max(3, int(0.5 * max(t.shape[0] for t in calib.templates) * 0.6))
+    mask = cv2.dilate(signal, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))) > 0
+    res = _Residual(padded, pad, tmpl, noise_sigma(padded[pad:pad + H, pad:pad + W]))
+    hits, models = [], []
+
+    def xy():
+        return np.array([(h["y_px"], h["x_px"]) for h in hits], float).reshape(-1, 2)
+
+    for rnd in range(max(1, int(rounds))):
+        rr, cc, _ = _candidates(res.img, pad, tmpl, calib, (H, W), mask, n_templates, c_candidate,
+                                exclude=xy() if hits else None)
+        new = 0
+        for r, c in zip(rr, cc):
+            if hits:
+                d = np.hypot(xy()[:, 0] - r, xy()[:, 1] - c).min()
+                if d <= 3.0:
+                    continue
+            hit = _match_one(res.img, pad, r, c, tmpl, calib, m, z_points, cm_drop)
+            if hit["cm"] < cm_min:
+                continue
+            if hits and np.hypot(xy()[:, 0] - hit["y_px"], xy()[:, 1] - hit["x_px"]).min() <= 2.0:
+                continue
+            sl, mod = res.model(hit)
+            if hit["snr"] < max(snr_fit, snr_rel * _overlap_snr(hit, hits, tmpl)):
+                continue
+            res.subtract(sl, mod)
+            hits.append(hit)
+            models.append((sl, mod))
+            new += 1
+        for _ in range(int(refine)):
+            alive = []
+            for i, h in enumerate(hits):
+                res.add(*models[i])
+                h2 = _match_one(res.img, pad, h["y_px"], h["x_px"], tmpl, calib, min(m, 2), z_points, cm_drop)
+                if h2["cm"] >= h["cm"] - 0.02:
+                    h = h2
+                others = [hits[j] for j in alive] + hits[i + 1:]
+                if others and min(np.hypot(o["y_px"] - h["y_px"], o["x_px"] - h["x_px"]) for o in others) <= 2.0:
+                    continue        # converged onto another particle: one image, found twice
+                sl, mod = res.model(h)
+                res.subtract(sl, mod)
+                hits[i], models[i] = h, (sl, mod)
+                alive.append(i)
+            hits = [hits[i] for i in alive]
+            models = [models[i] for i in alive]
+        if new == 0:
+            break
+    # the leftovers of an imperfectly subtracted neighbour can correlate well (Cm is blind to amplitude) but
+    # carry a fraction of a particle's light: drop images much fainter than the frame's typical particle
+    mass_ref = float(np.median([h["mass"] for h in hits])) if len(hits) >= 3 else 0.0
+    out = {k: [] for k in ("x_px", "y_px", "z", "cm", "page", "snr", "mass", "edge")}
+    for h, (sl, mod) in zip(hits, models):
+        if h["cm"] < cm_min or h["snr"] < snr_fit or h["mass"] < min_mass * mass_ref:
+            continue
+        for key in ("x_px", "y_px", "z", "cm", "page", "snr"):
+            out[key].append(h[key])
+        out["mass"].append(h["mass"])
+        T = tmpl[h["page"]].shape[0]
+        out["edge"].append(bool(h["top"] < pad or h["left"] < pad or h["top"] + T > pad + H or h["left"] + T > pad + W))
+    return pd.DataFrame(out)

@@ -140,3 +140,33 @@ def test_cli_3d_and_pixel_size_mismatch(tmp_path, calib):
     np.testing.assert_allclose(got, [-1.23e-6, 0.41e-6, 1.57e-6], atol=0.04e-6)
     assert t["cm"].min() > 0.8
     assert t.attrs["ptrack"]["calib_depth"] == pytest.approx(4e-6)
+
+
+def test_edge_cut_and_overlapping_defocused_images_no_spurious(calib):
+    """A frame with an image cut by the frame edge and two defocused (ring-like, astigmatic) images that
+    overlap: each particle is found once, at its x, y and z, and nothing else is reported."""
+    from ptrack.table import make_table
+
+    cam = render.Camera(photons=4000.0, background=15.0)
+    # (x, y) px and z: cut by the left edge; two defocused images 13 px apart (their images overlap);
+    # one in focus for reference
+    xs = np.array([3.0, 60.0, 73.0, 100.0])
+    ys = np.array([40.0, 44.0, 50.0, 20.0])
+    zs = np.array([0.6e-6, -1.5e-6, 1.4e-6, 0.0])
+    n_f = 4
+    fr = np.repeat(np.arange(n_f), len(xs))
+    p = np.tile(np.arange(len(xs)), n_f)
+    table = make_table(fr, fr * 0.1, p, xs[p] * PX, ys[p] * PX, zs[p], meta={"frame_interval": 0.1})
+    for f, frame in enumerate(render.render_frames(table, shape=(90, 120), optics=OPTICS, camera=cam, seed=21)):
+        df = locate_3d(prepare(frame, bg_size=3 * calib.size), calib)
+        assert len(df) == len(xs), df
+        d = np.hypot(df["x_px"].to_numpy()[:, None] - xs, df["y_px"].to_numpy()[:, None] - ys)
+        near = d.argmin(1)
+        assert sorted(near) == list(range(len(xs))), df        # one detection per particle
+        alone = (near == 0) | (near == 3)
+        assert d.min(1)[alone].max() < 0.5 and d.min(1).max() < 2.0, df
+        # z: the overlapping pair is measured with its neighbour's fitted image removed (a few % of the depth)
+        dz = np.abs(df["z"].to_numpy() - zs[near])
+        assert dz.max() < 0.3e-6 and dz[alone].max() < 0.1e-6, df
+        assert df["cm"].min() > 0.8
+        assert df["edge"].to_numpy()[near == 0].all() and not df["edge"].to_numpy()[near == 3].any()
