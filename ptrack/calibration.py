@@ -10,6 +10,12 @@ through Cm(z) at the best page and its two neighbours, and x, y by a parabola
 through the correlation peak (the defocused image's own centre, not a spot
 fit). Matches below a correlation threshold are dropped (GDPT's Cm_min).
 
+In a movie (:func:`locate_3d`) candidates come from correlating a few
+representative templates over the whole frame, and each accepted particle's
+fitted template is subtracted before the next is matched, so that one
+defocused (ring-shaped, astigmatic) image is reported once and overlapping
+images are matched each with its neighbour removed.
+
 Templates: each page is background-subtracted (median of its border), the
 particle centre is found per page (thresholded centroid; a stack that drifts
 sideways is fine), and a square window of the same size for every page is cut
@@ -387,7 +393,7 @@ def _prepare_matching(img, calib: Calibration, smooth: float, margin: int):
     return padded, pad, tmpl
 
 
-def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm_drop):
+def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm_drop, coarse: int = 0):
     """Best template, z, sub-pixel x, y and Cm of the particle image near frame pixel (r, c).
 
     Returns a dict with ``x_px``, ``y_px``, ``z``, ``cm``, ``page`` and the
@@ -397,12 +403,27 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
     import cv2
 
     ri, ci = int(round(r)) + pad, int(round(c)) + pad
-    maps = []
-    for k, t in enumerate(tmpl):
+    K = len(tmpl)
+
+    def corr(k):
+        t = tmpl[k]
         h = t.shape[0] // 2
         win = padded[ri - h - m: ri + h + m + 1, ci - h - m: ci + h + m + 1]
-        maps.append(cv2.matchTemplate(win, t, cv2.TM_CCOEFF_NORMED))
-    maps = np.nan_to_num(np.stack(maps), nan=-1.0)   # all (2m+1, 2m+1)
+        return cv2.matchTemplate(win, t, cv2.TM_CCOEFF_NORMED)
+
+    if coarse and K > 4 * coarse:
+        # coarse to fine: every ``coarse``-th page first, then every page within 2 coarse steps of the best
+        maps = np.full((K, 2 * m + 1, 2 * m + 1), -1.0, np.float32)
+        first = np.arange(0, K, coarse)
+        for k in first:
+            maps[k] = corr(k)
+        best = int(first[np.argmax(np.nan_to_num(maps[first], nan=-1.0).reshape(len(first), -1).max(1))])
+        for k in range(max(0, best - 2 * coarse), min(K, best + 2 * coarse + 1)):
+            if k % coarse:
+                maps[k] = corr(k)
+        maps = np.nan_to_num(maps, nan=-1.0)
+    else:
+        maps = np.nan_to_num(np.stack([corr(k) for k in range(K)]), nan=-1.0)   # all (2m+1, 2m+1)
     peak = _subpixel_peaks(maps)
     k = int(np.argmax(peak))
     cm = float(peak[k])
@@ -585,33 +606,55 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
               cm_min: float = 0.5, min_area: int = 4, smooth: float = 1.5, n_templates: int = 7,
               c_candidate: float = 0.3, rounds: int = 2, refine: int = 2, z_points: int | None = None,
               cm_drop: float = 0.15, snr_fit: float = 40.0, snr_rel: float = 0.15,
-              min_mass: float = 0.5) -> pd.DataFrame:
+              min_mass: float = 0.5, max_mass: float | None = 1.8, coarse: int = 4) -> pd.DataFrame:
     """Detect defocused particles in a background-subtracted frame and measure x, y, z, Cm.
 
-    1. Candidates: local maxima of the frame's correlation with a few
-       representative templates (:func:`_candidates`), near pixels above
+    Built for realistic (crowded) frames, where defocused images overlap and
+    are cut by the frame edge:
+
+    1. Candidates: local maxima of the frame's correlation with
+       ``n_templates`` representative templates (the GDPTlab way,
+       :func:`_candidates`), above ``c_candidate`` and near pixels above
        ``snr`` noise units (after a ``sigma`` px blur).
     2. In decreasing order of that correlation, each candidate is matched
-       against every template (sub-pixel x, y, parabolic z, Cm) on the
+       against the templates (coarse to fine: every ``coarse``-th page, then
+       every page near the best; sub-pixel x, y, parabolic z, Cm) on the
        *residual* frame, from which the template models of the particles
-       already accepted were subtracted (amplitude by least squares). A
-       ring-shaped or astigmatic image found at several points is explained
-       by its first (best) match and its other candidates then fall below
-       ``cm_min``; two overlapping images are each matched with the other
-       removed, so Cm keeps its meaning (the correlation of one particle's
-       own image with its template).
+       already accepted were subtracted (amplitude by least squares over the
+       pixels inside the frame). A ring-shaped or astigmatic image found at
+       several points is explained by its first (best) match; two
+       overlapping images are each matched with the other removed, so Cm
+       keeps its meaning (the correlation of one particle's own image with
+       its template).
     3. ``refine`` passes re-match every accepted particle with all the
-       others removed (the first matches saw their neighbours); ``rounds``
-       repeats the candidate search on the residual (images hidden under
-       brighter ones).
+       others removed (the first matches saw their neighbours); a particle
+       that converges within 2 px of another is dropped (one image found
+       twice). ``rounds`` repeats the candidate search on the residual
+       (images hidden under brighter ones).
+    4. Checks against matches of what is left over: Cm is blind to
+       amplitude, and the residue of an imperfectly subtracted image can
+       correlate well with a small template. A match is kept only if its
+       fitted amplitude is ``snr_fit`` times its standard error and
+       ``snr_rel`` times that of any accepted image it overlaps, and its
+       brightness (``mass``) is at least ``min_mass`` times the frame's
+       median (with 3 or more particles). Matches brighter than ``max_mass``
+       times the median (two images merged into one match, whose z is wrong)
+       are dropped too; give ``max_mass=None`` for samples with aggregates or
+       very different particle brightnesses.
+
+    Measured on ``data/synthetic/diffusion3d`` (28 particles, 160 x 160 px,
+    many overlapping images): recall 0.53 -> 0.82, precision 0.85 -> 0.94,
+    z RMSE 7.4 % -> 3.0 % of the 6 um depth (``bench/bench_pipeline.py --only B``);
+    the remaining errors are pairs less than ~1 um apart laterally.
 
     Returns
     -------
     pandas.DataFrame
-        ``x_px``, ``y_px`` (px), ``z`` (m), ``cm``, ``page``, ``mass``
-        (photo-signal of the fitted model, smoothed ADU), ``edge`` (True when
-        the best template's window leaves the frame: a cut image, matched on
-        its visible part).
+        ``x_px``, ``y_px`` (px), ``z`` (m), ``cm``, ``page`` (best template),
+        ``snr`` (amplitude / its standard error), ``mass`` (the fitted
+        model's signal, smoothed ADU, including any part outside the
+        frame), ``edge`` (True when the best template's window leaves the
+        frame: a cut image, matched and fitted on its visible part).
     """
     import cv2
 
@@ -650,7 +693,7 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
                 d = np.hypot(xy()[:, 0] - r, xy()[:, 1] - c).min()
                 if d <= 3.0:
                     continue
-            hit = _match_one(res.img, pad, r, c, tmpl, calib, m, z_points, cm_drop)
+            hit = _match_one(res.img, pad, r, c, tmpl, calib, m, z_points, cm_drop, coarse)
             if hit["cm"] < cm_min:
                 continue
             if hits and np.hypot(xy()[:, 0] - hit["y_px"], xy()[:, 1] - hit["x_px"]).min() <= 2.0:
@@ -662,11 +705,16 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
             hits.append(hit)
             models.append((sl, mod))
             new += 1
+        if new == 0 and rnd > 0:
+            break
         for _ in range(int(refine)):
             alive = []
             for i, h in enumerate(hits):
+                if _overlap_snr(h, hits[:i] + hits[i + 1:], tmpl) == 0:
+                    alive.append(i)         # alone: its first match saw no neighbour, nothing to refine
+                    continue
                 res.add(*models[i])
-                h2 = _match_one(res.img, pad, h["y_px"], h["x_px"], tmpl, calib, min(m, 2), z_points, cm_drop)
+                h2 = _match_one(res.img, pad, h["y_px"], h["x_px"], tmpl, calib, min(m, 2), z_points, cm_drop, coarse)
                 if h2["cm"] >= h["cm"] - 0.02:
                     h = h2
                 others = [hits[j] for j in alive] + hits[i + 1:]
@@ -685,7 +733,8 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
     mass_ref = float(np.median([h["mass"] for h in hits])) if len(hits) >= 3 else 0.0
     out = {k: [] for k in ("x_px", "y_px", "z", "cm", "page", "snr", "mass", "edge")}
     for h, (sl, mod) in zip(hits, models):
-        if h["cm"] < cm_min or h["snr"] < snr_fit or h["mass"] < min_mass * mass_ref:
+        if (h["cm"] < cm_min or h["snr"] < snr_fit or h["mass"] < min_mass * mass_ref
+                or (max_mass and mass_ref > 0 and h["mass"] > max_mass * mass_ref)):
             continue
         for key in ("x_px", "y_px", "z", "cm", "page", "snr"):
             out[key].append(h[key])
