@@ -189,12 +189,14 @@ def section_b(quick):
         truth = pd.read_parquet(d / "truth.parquet")
         truth = truth[truth["in_frame"]] if "in_frame" in truth else truth
         feats = {}
+        t0 = time.perf_counter()
         with open_movie(d / "movie.tif") as mv:
             for f in range(len(mv)):
                 feats[f] = locate_3d(prepare(mv[f], bg_size=3 * cal.size), cal, cm_min=0.0)
+        el = (time.perf_counter() - t0) / max(len(feats), 1)
         res = _eval_3d(feats, truth)
         _print_3d(f"data/synthetic/diffusion3d ({params['n_particles']} particles, {params['camera']['photons']:.0f} "
-                  f"photons, dense: overlapping images)", *res, cal.depth, bins)
+                  f"photons, dense: overlapping images; {el:.2f} s/frame)", *res, cal.depth, bins)
         # isolated subset: particles with no other particle within 40 px
         iso = []
         for f, tt in truth.groupby("frame"):
