@@ -158,7 +158,8 @@ def track_movie(movie, out=None, pixel_size: float | None = None, frame_interval
     -------
     table : DataFrame
         Trajectories table (:mod:`ptrack.table`) with x_px, y_px, mass, size,
-        ecc, signal, sigma_x, sigma_y (2D) or cm (3D).
+        ecc, signal, sigma_x, sigma_y (2D) or cm and edge (3D; edge: the
+        particle image is cut by the frame border).
     summary : dict
         ``n_frames``, ``n_localisations``, ``n_tracks``, ``wall_time_s``,
         ``frames_per_s`` and the settings used.
@@ -209,6 +210,8 @@ def track_movie(movie, out=None, pixel_size: float | None = None, frame_interval
         z = None
     else:
         opt.update(cm=linked["cm"])
+        if "edge" in linked:  # image cut by the frame edge: z from its visible part only
+            opt.update(edge=linked["edge"].astype(bool))
         z = linked["z"].to_numpy()
         meta.update(calibration=str(cal.source), calib_depth=cal.depth, calib_step=cal.step,
                     calib_template_px=cal.size, cm_min=float(cm_min))

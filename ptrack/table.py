@@ -24,7 +24,7 @@ from .errors import UserError, atomic_output, require_file
 
 REQUIRED_COLUMNS = ("frame", "t", "particle", "x", "y", "z")
 OPTIONAL_COLUMNS = (
-    "x_px", "y_px", "z_px", "mass", "size", "ecc", "signal", "cm",
+    "x_px", "y_px", "z_px", "mass", "size", "ecc", "signal", "cm", "edge",
     "vx", "vy", "vz", "radius", "sigma_x", "sigma_y", "sigma_z",
 )
 UNITS = {
