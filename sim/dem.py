@@ -170,6 +170,28 @@ def _check(pos, vel, radius, limits):
 
 
 @njit(cache=True)
+def rebuild_neighbors(pos, image, radius, cutoff, skin, lo, length, periodic, start, nbj, hist, ref_pos):
+    """Wrap positions into the box and rebuild the neighbour list from them.
+
+    The one rebuild step shared by every DEM kernel (integrators here, the
+    quench in ``sim.studies.epd_order``): wraps ``pos`` into the periodic box
+    (counting crossings in ``image``), builds the new list, carries the
+    tangential-spring history of pairs present in both lists, and stores the
+    positions the list was built from in ``ref_pos`` (all in place).
+
+    Returns
+    -------
+    start, nbj, shift, hist : the new list (CSR row starts, neighbour indices,
+        periodic image shifts in m) and the carried history (m), one row per pair.
+    """
+    wrap_positions(pos, image, lo, length, periodic)
+    ns, nj, nsh = _build(pos, radius, cutoff, skin, lo, length, periodic)
+    hist = carry_history(start, nbj, hist, ns, nj)
+    ref_pos[:, :] = pos
+    return ns, nj, nsh, hist
+
+
+@njit(cache=True)
 def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
                pos, image, vel, omega, force, torque, radius, mass, inertia, charge, gamma, fconst,
                drag_mode, extp, seed, model, cp, cpw, nf_model, nfp, rotation, walls, whist,
@@ -225,13 +247,8 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
                     omega[i, 1] += ii * torque[i, 1]
                     omega[i, 2] += ii * torque[i, 2]
             if needs_rebuild(pos, ref_pos, skin):
-                wrap_positions(pos, image, lo, length, periodic)
-                ns, nj, nsh = _build(pos, radius, cutoff, skin, lo, length, periodic)
-                hist = carry_history(start, nbj, hist, ns, nj)
-                start = ns
-                nbj = nj
-                shift = nsh
-                ref_pos[:, :] = pos
+                start, nbj, shift, hist = rebuild_neighbors(pos, image, radius, cutoff, skin, lo, length, periodic,
+                                                            start, nbj, hist, ref_pos)
                 nbuild += 1
             _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt,
                     model, cp, cpw, nf_model, nfp, rotation, walls, whist, start, nbj, shift, hist,
@@ -288,13 +305,8 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
             hist[:, :] = hist0
             whist[:, :] = whist0
             if needs_rebuild(pos, ref_pos, skin):
-                wrap_positions(pos, image, lo, length, periodic)
-                ns, nj, nsh = _build(pos, radius, cutoff, skin, lo, length, periodic)
-                hist = carry_history(start, nbj, hist, ns, nj)
-                start = ns
-                nbj = nj
-                shift = nsh
-                ref_pos[:, :] = pos
+                start, nbj, shift, hist = rebuild_neighbors(pos, image, radius, cutoff, skin, lo, length, periodic,
+                                                            start, nbj, hist, ref_pos)
                 nbuild += 1
             _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt,
                     model, cp, cpw, nf_model, nfp, rotation, walls, whist, start, nbj, shift, hist,
@@ -312,13 +324,8 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
             return st, s + 1, p, start, nbj, shift, hist, ref_pos, nbuild
     if force_rebuild_at_end:
         # deterministic restart point: list rebuilt from these exact positions
-        wrap_positions(pos, image, lo, length, periodic)
-        ns, nj, nsh = _build(pos, radius, cutoff, skin, lo, length, periodic)
-        hist = carry_history(start, nbj, hist, ns, nj)
-        start = ns
-        nbj = nj
-        shift = nsh
-        ref_pos[:, :] = pos
+        start, nbj, shift, hist = rebuild_neighbors(pos, image, radius, cutoff, skin, lo, length, periodic,
+                                                    start, nbj, hist, ref_pos)
         nbuild += 1
     return OK, nsteps, -1, start, nbj, shift, hist, ref_pos, nbuild
 

@@ -38,8 +38,9 @@ import numpy as np
 from numba import njit
 
 from ptrack.constants import BOLTZMANN, VACUUM_PERMITTIVITY
+from sim.dem import rebuild_neighbors
 from sim.forces.contact import D_SIZE, pair_forces
-from sim.neighbors import _build, carry_history, needs_rebuild, wrap_positions
+from sim.neighbors import _build, needs_rebuild, wrap_positions
 
 DEFAULTS = dict(radius=100e-9, temperature=293.0, viscosity=1e-3, eps_r=80.0, psi=0.05, n_particles=300,
                 side_radii=None, height_radii=None, volume_fraction=0.04, dt_reduced=2e-4, settle=1.0,
@@ -71,13 +72,8 @@ def _bd_deposit(pos, radius, a, gamma, kT, f_field, t_end, dt0, nfp, cp, length,
     steps = 0
     while t < t_end and steps < max_steps:
         if needs_rebuild(pos, ref, skin):
-            wrap_positions(pos, image, lo, length, periodic)
-            ns, nj, nsh = _build(pos, radius, cutoff, skin, lo, length, periodic)
-            hist = carry_history(start, nbj, hist, ns, nj)
-            start = ns
-            nbj = nj
-            shift = nsh
-            ref[:, :] = pos
+            start, nbj, shift, hist = rebuild_neighbors(pos, image, radius, cutoff, skin, lo, length, periodic,
+                                                        start, nbj, hist, ref)
         force[:, :] = 0.0
         pair_forces(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist, force, torque,
                     1, cp, 2, nfp, False, dt0, diag)
