@@ -114,51 +114,6 @@ def _local_maxima(img, thr, half, edge):
 
 
 @nb.njit(cache=True)
-def _local_maxima_bg(img, bg, ds, thr, low, half, edge):
-    # local maxima of img whose height above the block background bg[r // ds, c // ds] exceeds thr
-    h, w = img.shape
-    bh, bw = bg.shape
-    n = 0
-    cap = 1024
-    rows = np.empty(cap, np.int64)
-    cols = np.empty(cap, np.int64)
-    vals = np.empty(cap, np.float64)
-    for r in range(edge, h - edge):
-        br = min(r // ds, bh - 1)
-        for c in range(edge, w - edge):
-            v = img[r, c]
-            if v <= low:
-                continue
-            b = bg[br, min(c // ds, bw - 1)]
-            if v - b <= thr:
-                continue
-            ok = True
-            for rr in range(max(0, r - half), min(h - 1, r + half) + 1):
-                for cc in range(max(0, c - half), min(w - 1, c + half) + 1):
-                    u = img[rr, cc]
-                    if u > v or (u == v and (rr < r or (rr == r and cc < c))):
-                        ok = False
-                        break
-                if not ok:
-                    break
-            if ok:
-                if n == cap:
-                    cap *= 2
-                    rows2 = np.empty(cap, np.int64)
-                    cols2 = np.empty(cap, np.int64)
-                    vals2 = np.empty(cap, np.float64)
-                    rows2[:n] = rows[:n]
-                    cols2[:n] = cols[:n]
-                    vals2[:n] = vals[:n]
-                    rows, cols, vals = rows2, cols2, vals2
-                rows[n] = r
-                cols[n] = c
-                vals[n] = v - b
-                n += 1
-    return rows[:n], cols[:n], vals[:n]
-
-
-@nb.njit(cache=True)
 def _median9(buf):
     # insertion sort of 9 values, return the middle one
     for i in range(1, 9):
@@ -491,6 +446,22 @@ def _erf_profile(n0, n, x, s, e, de_dx, de_ds):
         de_ds[i] = -(a * ga - b * gb) / (_SQRT2PI * s * s)
 
 
+@nb.njit(cache=True, inline="always")
+def _pixel_loglik(d, mu, rvar, poisson):
+    # one pixel's term of the fit objective, shared by the single and the joint fit: d = measured photons,
+    # mu = model photons. Poisson log-likelihood with the read-noise variance rvar added to both (sCMOS
+    # approximation; mu floored at 1e-9), or -(d - mu)^2 / 2 for least squares.
+    if poisson:
+        mu += rvar
+        d += rvar
+        if mu < 1e-9:
+            mu = 1e-9
+        if d > 0:
+            return d * math.log(mu) - mu
+        return -mu
+    return -0.5 * (d - mu) ** 2
+
+
 @nb.njit(cache=True)
 def _objective(img, r0, r1, c0, c1, th, gain, offset, rvar, poisson, ex, ey, dxx, dxs, dyy, dys):
     x, y, N, b, s = th[0], th[1], th[2], th[3], th[4]
@@ -500,18 +471,7 @@ def _objective(img, r0, r1, c0, c1, th, gain, offset, rvar, poisson, ex, ey, dxx
     for i in range(r1 - r0 + 1):
         for j in range(c1 - c0 + 1):
             mu = b + N * ex[j] * ey[i]
-            d = (img[r0 + i, c0 + j] - offset) / gain
-            if poisson:
-                mu += rvar
-                d += rvar
-                if mu < 1e-9:
-                    mu = 1e-9
-                if d > 0:
-                    f += d * math.log(mu) - mu
-                else:
-                    f -= mu
-            else:
-                f -= 0.5 * (d - mu) ** 2
+            f += _pixel_loglik((img[r0 + i, c0 + j] - offset) / gain, mu, rvar, poisson)
     return f
 
 
@@ -716,18 +676,7 @@ def _group_objective(img, r0, nr, c0, nc, th, K, gain, offset, rvar, poisson, ex
             mu = b
             for k in range(K):
                 mu += th[3 * k + 2] * ex[k, j] * ey[k, i]
-            d = (img[r0 + i, c0 + j] - offset) / gain
-            if poisson:
-                mu += rvar
-                d += rvar
-                if mu < 1e-9:
-                    mu = 1e-9
-                if d > 0:
-                    f += d * math.log(mu) - mu
-                else:
-                    f -= mu
-            else:
-                f -= 0.5 * (d - mu) ** 2
+            f += _pixel_loglik((img[r0 + i, c0 + j] - offset) / gain, mu, rvar, poisson)
     return f
 
 
