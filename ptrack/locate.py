@@ -475,6 +475,20 @@ def _objective(img, r0, r1, c0, c1, th, gain, offset, rvar, poisson, ex, ey, dxx
     return f
 
 
+@nb.njit(cache=True, inline="always")
+def _border_mean(img, r0, nr, c0, nc, gain, offset):
+    # mean photons on the border pixels of the window rows r0..r0+nr-1, cols c0..c0+nc-1: the starting
+    # background of the single and the joint fit
+    bsum = 0.0
+    nb_ = 0
+    for i in range(nr):
+        for j in range(nc):
+            if i == 0 or j == 0 or i == nr - 1 or j == nc - 1:
+                bsum += (img[r0 + i, c0 + j] - offset) / gain
+                nb_ += 1
+    return bsum / max(nb_, 1)
+
+
 @nb.njit(cache=True)
 def _fit_one(img, r, c, half, sigma0, gain, offset, rvar, poisson, max_iter, out, cov):
     h, w = img.shape
@@ -485,14 +499,7 @@ def _fit_one(img, r, c, half, sigma0, gain, offset, rvar, poisson, max_iter, out
     nr = r1 - r0 + 1
     nc = c1 - c0 + 1
     # initial guess: border mean as background, centroid of the excess
-    bsum = 0.0
-    nb_ = 0
-    for i in range(nr):
-        for j in range(nc):
-            if i == 0 or j == 0 or i == nr - 1 or j == nc - 1:
-                bsum += (img[r0 + i, c0 + j] - offset) / gain
-                nb_ += 1
-    b0 = bsum / max(nb_, 1)
+    b0 = _border_mean(img, r0, nr, c0, nc, gain, offset)
     sw = 0.0
     sx = 0.0
     sy = 0.0
@@ -734,14 +741,7 @@ def _fit_group(img, r0, r1, c0, c1, x0, y0, amp, sigma0, gain, offset, rvar, poi
     P = 3 * K + 2
     nr = r1 - r0 + 1
     nc = c1 - c0 + 1
-    bsum = 0.0
-    nb_ = 0
-    for i in range(nr):
-        for j in range(nc):
-            if i == 0 or j == 0 or i == nr - 1 or j == nc - 1:
-                bsum += (img[r0 + i, c0 + j] - offset) / gain
-                nb_ += 1
-    b0 = bsum / max(nb_, 1)
+    b0 = _border_mean(img, r0, nr, c0, nc, gain, offset)
     sw = 0.0
     for i in range(nr):
         for j in range(nc):
