@@ -143,6 +143,21 @@ def main(argv=None):
         s = reference_system(200, threads=th)
         s.run(10)
     rows = []
+
+    def timed_run(s, n, steps, th, note_of):
+        # run `steps` steps of system s, time them, add a table row and print it; note_of(wall) -> note
+        t0 = time.perf_counter()
+        c0 = time.process_time()
+        st = s.run(steps)
+        wall = time.perf_counter() - t0
+        cpu = time.process_time() - c0
+        rate = n * steps / wall
+        note = note_of(wall)
+        rows.append((n, steps, th, wall, rate, s.diag[D_N_CONTACTS] / n, s.n_builds, st, note, cpu))
+        print(f"N={n:7d} steps={steps:7d} threads={th} wall={wall:8.2f} s cpu={cpu:8.2f} s {rate:10.3e} particle-steps/s  "
+              f"contacts/particle={s.diag[D_N_CONTACTS] / n:5.2f} builds={s.n_builds:5d} status={st} {note}",
+              flush=True)
+
     for n in args.sizes:
         steps = args.steps if n <= 1000 else min(args.steps, args.steps_big)
         for th in args.threads:
@@ -150,32 +165,14 @@ def main(argv=None):
                 continue
             numba.set_num_threads(th)
             s = reference_system(n, threads=th)
-            t0 = time.perf_counter()
-            c0 = time.process_time()
-            st = s.run(steps)
-            wall = time.perf_counter() - t0
-            cpu = time.process_time() - c0
-            rate = n * steps / wall
-            note = "" if steps == args.steps else f"first {steps} steps (free fall), {args.steps} extrapolated: {wall * args.steps / steps:.1f} s"
-            rows.append((n, steps, th, wall, rate, s.diag[D_N_CONTACTS] / n, s.n_builds, st, note, cpu))
-            print(f"N={n:7d} steps={steps:7d} threads={th} wall={wall:8.2f} s cpu={cpu:8.2f} s {rate:10.3e} particle-steps/s  "
-                  f"contacts/particle={s.diag[D_N_CONTACTS] / n:5.2f} builds={s.n_builds:5d} status={st} {note}",
-                  flush=True)
+            timed_run(s, n, steps, th, lambda wall: "" if steps == args.steps else
+                      f"first {steps} steps (free fall), {args.steps} extrapolated: {wall * args.steps / steps:.1f} s")
             if n > 1000 and args.contact_window:
                 s.dt = 4e-6
                 s.run(int(round((args.ff_time - s.t) / 4e-6)))  # untimed fast-forward into the packed phase
                 s.dt = 1e-6
-                t0 = time.perf_counter()
-                c0 = time.process_time()
-                st = s.run(steps)
-                wall = time.perf_counter() - t0
-                cpu = time.process_time() - c0
-                rate = n * steps / wall
-                note = f"packed phase t = {args.ff_time:g} s: {steps} steps, {args.steps} extrapolated: {wall * args.steps / steps:.1f} s"
-                rows.append((n, steps, th, wall, rate, s.diag[D_N_CONTACTS] / n, s.n_builds, st, note, cpu))
-                print(f"N={n:7d} steps={steps:7d} threads={th} wall={wall:8.2f} s cpu={cpu:8.2f} s {rate:10.3e} "
-                      f"particle-steps/s  contacts/particle={s.diag[D_N_CONTACTS] / n:5.2f} builds={s.n_builds:5d} "
-                      f"status={st} {note}", flush=True)
+                timed_run(s, n, steps, th, lambda wall: f"packed phase t = {args.ff_time:g} s: {steps} steps, "
+                          f"{args.steps} extrapolated: {wall * args.steps / steps:.1f} s")
     print()
     print("| N | steps | threads | wall (s) | CPU (s) | particle-steps/s (wall) | contacts/particle | LAMMPS 1 thread | ratio | note |")
     print("|---|---|---|---|---|---|---|---|---|---|")
