@@ -169,6 +169,24 @@ def _check(pos, vel, radius, limits):
     return OK, -1
 
 
+@njit(cache=True, inline="always")
+def _half_kick(vel, omega, force, torque, mass, inertia, hdt, rotation):
+    # velocity-Verlet half kick (hdt = dt / 2, s) of the velocities (m/s) and, with rotation, the angular
+    # velocities (rad/s), in place; both kicks of a step
+    n = vel.shape[0]
+    for i in range(n):
+        im = hdt / mass[i]
+        vel[i, 0] += im * force[i, 0]
+        vel[i, 1] += im * force[i, 1]
+        vel[i, 2] += im * force[i, 2]
+    if rotation:
+        for i in range(n):
+            ii = hdt / inertia[i]
+            omega[i, 0] += ii * torque[i, 0]
+            omega[i, 1] += ii * torque[i, 1]
+            omega[i, 2] += ii * torque[i, 2]
+
+
 @njit(cache=True)
 def rebuild_neighbors(pos, image, radius, cutoff, skin, lo, length, periodic, start, nbj, hist, ref_pos):
     """Wrap positions into the box and rebuild the neighbour list from them.
@@ -232,20 +250,11 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
     for s in range(nsteps):
         step = step0 + s + 1
         if integrator == 0:
+            _half_kick(vel, omega, force, torque, mass, inertia, hdt, rotation)
             for i in range(n):
-                im = hdt / mass[i]
-                vel[i, 0] += im * force[i, 0]
-                vel[i, 1] += im * force[i, 1]
-                vel[i, 2] += im * force[i, 2]
                 pos[i, 0] += dt * vel[i, 0]
                 pos[i, 1] += dt * vel[i, 1]
                 pos[i, 2] += dt * vel[i, 2]
-            if rotation:
-                for i in range(n):
-                    ii = hdt / inertia[i]
-                    omega[i, 0] += ii * torque[i, 0]
-                    omega[i, 1] += ii * torque[i, 1]
-                    omega[i, 2] += ii * torque[i, 2]
             if needs_rebuild(pos, ref_pos, skin):
                 start, nbj, shift, hist = rebuild_neighbors(pos, image, radius, cutoff, skin, lo, length, periodic,
                                                             start, nbj, hist, ref_pos)
@@ -253,17 +262,7 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
             _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt,
                     model, cp, cpw, nf_model, nfp, rotation, walls, whist, start, nbj, shift, hist,
                     force, torque, diag, fbuf, tbuf, dbuf)
-            for i in range(n):
-                im = hdt / mass[i]
-                vel[i, 0] += im * force[i, 0]
-                vel[i, 1] += im * force[i, 1]
-                vel[i, 2] += im * force[i, 2]
-            if rotation:
-                for i in range(n):
-                    ii = hdt / inertia[i]
-                    omega[i, 0] += ii * torque[i, 0]
-                    omega[i, 1] += ii * torque[i, 1]
-                    omega[i, 2] += ii * torque[i, 2]
+            _half_kick(vel, omega, force, torque, mass, inertia, hdt, rotation)
         else:
             # phi-scheme: v1 = v0 + dt/m (phi F1 + (1-phi) F0); x1 = x0 + dt (phi v1 + (1-phi) v0)
             x0[:, :] = pos
