@@ -489,6 +489,21 @@ def _border_mean(img, r0, nr, c0, nc, gain, offset):
     return bsum / max(nb_, 1)
 
 
+@nb.njit(cache=True, inline="always")
+def _spot_model(th, ex, ey, dxx, dxs, dyy, dys, i, j, dm):
+    # single-spot model photons at window pixel (i, j) for th = (x, y, N, b, s) from the current erf
+    # profiles; its derivatives d mu / d th go to dm. Shared by the Levenberg-Marquardt step and the
+    # covariance of _fit_one.
+    N = th[2]
+    mu = th[3] + N * ex[j] * ey[i]
+    dm[0] = N * dxx[j] * ey[i]
+    dm[1] = N * ex[j] * dyy[i]
+    dm[2] = ex[j] * ey[i]
+    dm[3] = 1.0
+    dm[4] = N * (dxs[j] * ey[i] + ex[j] * dys[i])
+    return mu
+
+
 @nb.njit(cache=True)
 def _fit_one(img, r, c, half, sigma0, gain, offset, rvar, poisson, max_iter, out, cov):
     h, w = img.shape
@@ -541,13 +556,7 @@ def _fit_one(img, r, c, half, sigma0, gain, offset, rvar, poisson, max_iter, out
         g[:] = 0.0
         for i in range(nr):
             for j in range(nc):
-                N = th[2]
-                mu = th[3] + N * ex[j] * ey[i]
-                dm[0] = N * dxx[j] * ey[i]
-                dm[1] = N * ex[j] * dyy[i]
-                dm[2] = ex[j] * ey[i]
-                dm[3] = 1.0
-                dm[4] = N * (dxs[j] * ey[i] + ex[j] * dys[i])
+                mu = _spot_model(th, ex, ey, dxx, dxs, dyy, dys, i, j, dm)
                 d = (img[r0 + i, c0 + j] - offset) / gain
                 if poisson:
                     mu += rvar
@@ -595,13 +604,7 @@ def _fit_one(img, r, c, half, sigma0, gain, offset, rvar, poisson, max_iter, out
     rss = 0.0
     for i in range(nr):
         for j in range(nc):
-            N = th[2]
-            mu = th[3] + N * ex[j] * ey[i]
-            dm[0] = N * dxx[j] * ey[i]
-            dm[1] = N * ex[j] * dyy[i]
-            dm[2] = ex[j] * ey[i]
-            dm[3] = 1.0
-            dm[4] = N * (dxs[j] * ey[i] + ex[j] * dys[i])
+            mu = _spot_model(th, ex, ey, dxx, dxs, dyy, dys, i, j, dm)
             d = (img[r0 + i, c0 + j] - offset) / gain
             rss += (d - mu) ** 2
             wgt = 1.0 / max(mu + rvar, 1e-9) if poisson else 1.0
