@@ -55,32 +55,30 @@ def _unit_factor(unit, table):
     return table.get(u)
 
 
+def _to_si(value, unit, table) -> float | None:
+    """``value`` in ``unit`` times the unit's SI factor from ``table``; None if unknown or not positive."""
+    f = _unit_factor(unit, table)
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return None
+    if f is None or not np.isfinite(v) or v <= 0:
+        return None
+    return v * f
+
+
 def parse_length(value, unit) -> float | None:
     """Convert a length ``value`` in ``unit`` (``'um'``, ``'micron'``, ``'nm'``, ...) to metres.
 
     Returns None for an unknown unit (e.g. ImageJ's ``'pixel'``) or a
     non-positive value.
     """
-    f = _unit_factor(unit, _LENGTH_UNITS)
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        return None
-    if f is None or not np.isfinite(v) or v <= 0:
-        return None
-    return v * f
+    return _to_si(value, unit, _LENGTH_UNITS)
 
 
 def parse_time(value, unit) -> float | None:
     """Convert a time ``value`` in ``unit`` (``'s'``, ``'ms'``, ``'sec'``, ...) to seconds (None if unknown)."""
-    f = _unit_factor(unit, _TIME_UNITS)
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        return None
-    if f is None or not np.isfinite(v) or v <= 0:
-        return None
-    return v * f
+    return _to_si(value, unit, _TIME_UNITS)
 
 
 def _natural_key(p: Path):

@@ -71,6 +71,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ptrack.errors import UserError
+from sim.scene import _num  # one validator for every scene key
 from sim.forces.contact import CONTACT_HOOKE, CONTACT_NONE, CONTACT_POWER, hooke_params, power_params
 from sim.forces.nearfield import NF_NONE, NF_SEED, NF_YUKAWA, yukawa_prefactor
 
@@ -83,21 +84,6 @@ _ALLOWED = {
     "walls": ("kn", "restitution", "kt", "mu", "K", "exponent", "damping", "K_nb", "K_rb", "K_f", "mu_s", "mu_d",
               "tangential_damping_ratio"),
 }
-
-
-def _num(sec, key, v, *, positive=False, nonneg=False, lo=None, hi=None):
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise UserError(f"scene key {sec}.{key} = {v!r} is not a number", f"give {sec}.{key} as a number (SI units)")
-    v = float(v)
-    if not math.isfinite(v):
-        raise UserError(f"scene key {sec}.{key} = {v!r} is not finite", f"give a finite {sec}.{key}")
-    if positive and v <= 0:
-        raise UserError(f"scene key {sec}.{key} = {v!r} must be > 0", f"give a positive {sec}.{key}")
-    if nonneg and v < 0:
-        raise UserError(f"scene key {sec}.{key} = {v!r} must be >= 0", f"give a non-negative {sec}.{key}")
-    if lo is not None and v < lo or hi is not None and v > hi:
-        raise UserError(f"scene key {sec}.{key} = {v!r} is outside [{lo}, {hi}]", f"give {sec}.{key} in that range")
-    return v
 
 
 @dataclass
