@@ -32,7 +32,7 @@ import pandas as pd
 
 from .errors import UserError, check_positive, require_file
 
-__all__ = ["Calibration", "read_calib_z", "build_calibration", "load_calibration", "check_pixel_size",
+__all__ = ["Calibration", "read_calib_z", "build_calibration", "load_calibration", "prepare_gdpt", "check_pixel_size",
            "detect_blobs", "match_templates", "locate_3d"]
 
 
@@ -109,7 +109,23 @@ def read_calib_z(path, n_pages: int) -> np.ndarray:
     return out
 
 
-def _page_centre(img, noise):
+def _page_centre(img, noise, signed: bool = False):
+    """(row, col) centre and the radius holding 95 % of the image's light, of one background-subtracted page.
+
+    ``signed``: brightfield pages, whose defocused images are rings both
+    darker and brighter than the field; their centre and extent are taken on
+    the magnitude of the (1 px smoothed) signal, so the bright lobes count
+    as much as the dark ones.
+    """
+    if signed:
+        import cv2
+
+        img = np.abs(cv2.GaussianBlur(np.ascontiguousarray(img, np.float32), (0, 0), 1.0))
+        border = np.concatenate([img[0], img[-1], img[:, 0], img[:, -1]])
+        # noise of |smoothed noise|: its median and spread over the border
+        base = float(np.median(border))
+        noise = 1.4826 * float(np.median(np.abs(border - base))) + 1e-6
+        img = img - base
     thr = max(3 * noise, 0.2 * float(img.max()))
     w = np.clip(img - thr, 0, None)
     s = w.sum()
@@ -169,7 +185,7 @@ def build_calibration(stack, z, pixel_size=None, template_size: int | None = Non
         p = p - np.median(border)
         noise = 1.4826 * float(np.median(np.abs(border - np.median(border)))) + 1e-6
         pages.append(p)
-        found.append(_page_centre(p, noise))
+        found.append(_page_centre(p, noise, signed=brightfield))
     if any(f is None for f in found):
         bad = [int(k) for k, f in enumerate(found) if f is None]
         raise UserError(f"no particle visible in calibration page(s) {bad[:5]}", "crop the stack to the calibrated range")
@@ -180,7 +196,15 @@ def build_calibration(stack, z, pixel_size=None, template_size: int | None = Non
         zn = (z - z.mean()) / (np.ptp(z) or 1.0)
         for a in range(2):
             cyx[:, a] = np.polyval(np.polyfit(zn, cyx[:, a], 2), zn)
-    found = [(cyx[k, 0], cyx[k, 1], found[k][2]) for k in range(K)]
+    # brightfield: the image's extent grows smoothly with defocus, but one page's 95 % radius is noisy (the
+    # faint outer rings of a signed image come and go with the noise): a running median over 7 pages keeps
+    # neighbouring templates alike. (Fluorescence keeps its per-page sizes: measured better on diffusion3d.)
+    r95 = np.array([f[2] for f in found])
+    if brightfield and K >= 7:
+        from scipy.ndimage import median_filter
+
+        r95 = median_filter(r95, size=7, mode="nearest")
+    found = [(cyx[k, 0], cyx[k, 1], r95[k]) for k in range(K)]
     # each page gets its own square template, sized to its particle image (1.2 x the radius holding
     # 95 % of the light, at least 7 px): a small in-focus spot is not drowned in the noise of a
     # window sized for the most defocused page, which would lower its Cm.
@@ -201,7 +225,7 @@ def build_calibration(stack, z, pixel_size=None, template_size: int | None = Non
         templates.append(padded)
         centers[k] = (cy - r0, cx - c0)
     T = max(t.shape[0] for t in templates)
-    return Calibration(templates, z, centers, pixel_size, source, {"template_size": T})
+    return Calibration(templates, z, centers, pixel_size, source, {"template_size": T, "signed": bool(brightfield)})
 
 
 def load_calibration(path, z_csv=None, z_step: float | None = None, z0: float = 0.0, pixel_size=None,
@@ -228,6 +252,42 @@ def load_calibration(path, z_csv=None, z_step: float | None = None, z0: float = 
         dz = check_positive("calibration step", z_step)
         z = float(z0) + dz * np.arange(K)
     return build_calibration(stack, z, px, template_size, brightfield, source=str(path))
+
+
+def prepare_gdpt(raw, calib: Calibration, brightfield: bool = False, background="spatial") -> np.ndarray:
+    """One movie frame made ready for :func:`locate_3d` the way the calibration's templates were made.
+
+    Brightfield is inverted (dark particles positive) and kept *signed*:
+    defocused brightfield images are rings with lobes both darker and
+    brighter than the field, and the normalised cross-correlation needs both;
+    nothing is thresholded. The spatial background is then a running median
+    (an opening follows the lower envelope and would dip under every ring), window 3x
+    the largest template. Fluorescence: the usual opening.
+
+    Parameters
+    ----------
+    raw : 2D array
+        Camera frame.
+    calib : Calibration
+        From :func:`build_calibration` / :func:`load_calibration` with the
+        same ``brightfield`` setting.
+    brightfield : bool
+    background : "spatial", "none" or 2D array
+        As :func:`ptrack.preprocess.prepare` (an array: already inverted for
+        brightfield).
+
+    Returns
+    -------
+    numpy.ndarray of float32
+    """
+    from .preprocess import prepare
+
+    signed = bool(calib.info.get("signed", False))
+    if signed != bool(brightfield):
+        raise UserError(f"the calibration stack was built {'with' if signed else 'without'} --brightfield, "
+                        f"the movie is {'brightfield' if brightfield else 'fluorescence'}",
+                        "build the calibration with the same --brightfield setting as the movie")
+    return prepare(raw, brightfield=brightfield, background=background, bg_size=3.0 * calib.size, signed=signed)
 
 
 def check_pixel_size(calib: Calibration, pixel_size: float | None, rtol: float = 0.01) -> None:
@@ -543,6 +603,7 @@ class _Residual:
         den = float((tt * tt).sum())
         a = max(float((tt * win).sum()) / den, 0.0) if den > 0 else 0.0
         hit["snr"] = a * math.sqrt(den) / self.noise
+        hit["amp"] = a          # brightness relative to the calibration particle (whole image, also outside the frame)
         hit["mass"] = a * float(np.clip(t, 0, None).sum())   # whole image, also the part outside the frame
         return sl, (a * tt).astype(np.float32)
 
@@ -665,8 +726,10 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
     m = int(margin)
     padded, pad, tmpl = _prepare_matching(img, calib, smooth, m)
     sm = cv2.GaussianBlur(median3(img), (0, 0), sigmaX=float(sigma))
-    thr = float(np.median(sm[::5, ::5])) + snr * max(noise_sigma(sm), 1e-6)
-    signal = (sm > thr).astype(np.uint8)
+    base = float(np.median(sm[::5, ::5]))
+    thr = snr * max(noise_sigma(sm), 1e-6)
+    # brightfield (signed) calibrations: a defocused image has lobes darker and brighter than the field
+    signal = ((np.abs(sm - base) if calib.info.get("signed") else sm - base) > thr).astype(np.uint8)
     if min_area > 1:
         n, labels, stats, _ = cv2.connectedComponentsWithStats(signal, connectivity=8)
         small = np.nonzero(stats[:, cv2.CC_STAT_AREA] < min_area)[0]
@@ -730,11 +793,15 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
             break
     # the leftovers of an imperfectly subtracted neighbour can correlate well (Cm is blind to amplitude) but
     # carry a fraction of a particle's light: drop images much fainter than the frame's typical particle
-    mass_ref = float(np.median([h["mass"] for h in hits])) if len(hits) >= 3 else 0.0
+    # brightness: fluorescence, the fitted model's photons (conserved whatever z); brightfield, the fitted
+    # amplitude relative to the calibration particle's image at the same height (the contrast changes with
+    # defocus, so a sum over the image would not be comparable between heights)
+    bkey = "amp" if calib.info.get("signed") else "mass"
+    mass_ref = float(np.median([h[bkey] for h in hits])) if len(hits) >= 3 else 0.0
     out = {k: [] for k in ("x_px", "y_px", "z", "cm", "page", "snr", "mass", "edge")}
     for h, (sl, mod) in zip(hits, models):
-        if (h["cm"] < cm_min or h["snr"] < snr_fit or h["mass"] < min_mass * mass_ref
-                or (max_mass and mass_ref > 0 and h["mass"] > max_mass * mass_ref)):
+        if (h["cm"] < cm_min or h["snr"] < snr_fit or h[bkey] < min_mass * mass_ref
+                or (max_mass and mass_ref > 0 and h[bkey] > max_mass * mass_ref)):
             continue
         for key in ("x_px", "y_px", "z", "cm", "page", "snr"):
             out[key].append(h[key])

@@ -57,8 +57,8 @@ def invert(frame, max_value: float | None = None) -> np.ndarray:
     return m - f
 
 
-def spatial_background(img: np.ndarray, size: float = 25.0, downsample: int = 4) -> np.ndarray:
-    """Smooth background under the particles, from a grey-level opening.
+def spatial_background(img: np.ndarray, size: float = 25.0, downsample: int = 4, signed: bool = False) -> np.ndarray:
+    """Smooth background under the particles, from a grey-level opening (or a median for signed images).
 
     Parameters
     ----------
@@ -69,6 +69,13 @@ def spatial_background(img: np.ndarray, size: float = 25.0, downsample: int = 4)
         (e.g. 4x its diameter).
     downsample : int
         Work on a copy reduced by this factor (area averaging) for speed.
+    signed : bool
+        The particles' images have parts above *and* below the background
+        (defocused brightfield images: dark and bright rings). An opening
+        follows the lower envelope, so the dark-side lobes would pull the
+        background down under every particle; a running median (window
+        ``size``) ignores excursions of either sign covering less than half
+        of the window.
 
     Returns
     -------
@@ -83,8 +90,14 @@ def spatial_background(img: np.ndarray, size: float = 25.0, downsample: int = 4)
         ds = 1
     small = cv2.resize(img, (max(1, w // ds), max(1, h // ds)), interpolation=cv2.INTER_AREA) if ds > 1 else img
     k = max(3, int(round(size / ds)) | 1)
-    kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (k, k))
-    opened = cv2.morphologyEx(small, cv2.MORPH_OPEN, kernel, borderType=cv2.BORDER_REPLICATE)
+    if signed:
+        from scipy.ndimage import median_filter
+
+        # on the down-sampled copy (a few thousand pixels): cheap even for large windows
+        opened = median_filter(small, size=min(k, 2 * max(small.shape) + 1), mode="nearest").astype(np.float32)
+    else:
+        kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (k, k))
+        opened = cv2.morphologyEx(small, cv2.MORPH_OPEN, kernel, borderType=cv2.BORDER_REPLICATE)
     opened = cv2.blur(opened, (k, k), borderType=cv2.BORDER_REPLICATE)
     if ds > 1:
         opened = cv2.resize(opened, (w, h), interpolation=cv2.INTER_LINEAR)
@@ -132,7 +145,7 @@ def median3(img: np.ndarray) -> np.ndarray:
 
 
 def prepare(frame, brightfield: bool = False, background="spatial", bg_size: float = 25.0,
-            max_value: float | None = None) -> np.ndarray:
+            max_value: float | None = None, signed: bool = False) -> np.ndarray:
     """Invert (brightfield only) and subtract the background of one frame.
 
     Parameters
@@ -149,11 +162,17 @@ def prepare(frame, brightfield: bool = False, background="spatial", bg_size: flo
     max_value : float, optional
         Inversion reference (default: the camera's full scale for integer
         frames).
+    signed : bool
+        The particle images have parts on both sides of the background
+        (defocused brightfield): the spatial background is a running median
+        instead of an opening (see :func:`spatial_background`). Nothing is
+        thresholded here in either case.
 
     Returns
     -------
     numpy.ndarray of float32
-        Background-subtracted image, particles positive, background ~0.
+        Background-subtracted image, particles positive (brightfield: their
+        dark parts), background ~0.
     """
     if brightfield:
         if max_value is None and np.issubdtype(np.asarray(frame).dtype, np.integer):
@@ -169,5 +188,5 @@ def prepare(frame, brightfield: bool = False, background="spatial", bg_size: flo
     if background in (None, "none", False):
         return subtract_background(img, None)
     if background == "spatial":
-        return subtract_background(img, spatial_background(img, bg_size))
+        return subtract_background(img, spatial_background(img, bg_size, signed=signed))
     raise UserError(f"background = {background!r} is not known", "use 'spatial', 'temporal' or 'none'")

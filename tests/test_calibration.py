@@ -170,3 +170,95 @@ def test_edge_cut_and_overlapping_defocused_images_no_spurious(calib):
         assert dz.max() < 0.3e-6 and dz[alone].max() < 0.1e-6, df
         assert df["cm"].min() > 0.8
         assert df["edge"].to_numpy()[near == 0].all() and not df["edge"].to_numpy()[near == 3].any()
+
+
+# --- brightfield GDPT: 20x NA 0.4 air objective, 0.8 um particles 1-15 um above the focal plane -------------------
+BF_OPT = render.Optics(na=0.4, magnification=20.0, wavelength=550e-9)
+BF_CAM = render.Camera(photons=30000.0, background=800.0)
+BF_PX = render.sample_pixel_size(BF_OPT, BF_CAM.pixel_pitch)
+BF_Z = np.round(np.arange(1e-6, 15.001e-6, 0.5e-6), 12)
+BF_STEP = 0.5e-6
+BF_KW = dict(optics=BF_OPT, camera=BF_CAM, brightfield=True, radius=0.4e-6)
+# depth of field n lambda / NA^2: inside it the image barely changes with z, so z is poorly defined there
+BF_DOF = BF_OPT.medium_index * BF_OPT.wavelength / BF_OPT.na ** 2
+
+
+@pytest.fixture(scope="module")
+def bf_calib():
+    stack = np.stack(list(render.calibration_images(BF_Z, shape=(64, 64), seed=1, **BF_KW)))
+    return build_calibration(stack, BF_Z, BF_PX, brightfield=True, source="bf")
+
+
+def _z_crb(z, h=0.1e-6):
+    """Cramer-Rao bound of z (m) for one brightfield image at height z: Poisson noise of the bright field plus
+    read noise, Fisher information sum (d mu / dz)^2 / var from the noise-free images at z +- h."""
+    a, b, c = (next(render.calibration_images([zz], shape=(64, 64), noise=False, **BF_KW)) for zz in (z - h, z, z + h))
+    qe = BF_CAM.quantum_efficiency
+    var = b * qe + BF_CAM.read_noise ** 2
+    return 1.0 / np.sqrt((((c - a) * qe / (2 * h)) ** 2 / var).sum())
+
+
+def _bf_bound(z):
+    # GDPT is no efficient estimator and its templates are single noisy pages as noisy as the image itself
+    # (sqrt 2): 5 x sqrt 2 x the bound, and never below 0.6 of a calibration step
+    return max(5 * np.sqrt(2) * _z_crb(z), 0.6 * BF_STEP)
+
+
+def test_brightfield_prepare_is_signed_and_calibration_signed(bf_calib):
+    """Brightfield frames are inverted but not thresholded; the background under a ring is not pulled down."""
+    from ptrack.calibration import prepare_gdpt
+
+    assert bf_calib.info["signed"]
+    img = next(render.calibration_images([12e-6], shape=(96, 96), seed=3, **BF_KW))
+    p = prepare_gdpt(img, bf_calib, brightfield=True)
+    assert p.min() < -3 * np.std(p[:10, :10]) and p.max() > 5 * np.std(p[:10, :10])   # both signs kept
+    # the median background keeps the particle-free field at 0 (an opening would sit on the noise minima)
+    assert abs(np.median(p[:12])) < 0.2 * np.std(p[:12])
+    with pytest.raises(UserError, match="brightfield"):
+        prepare_gdpt(img, bf_calib, brightfield=False)
+
+
+def test_brightfield_stack_pages_recovered(bf_calib):
+    """An independent noisy brightfield stack: each page comes back at its z within the Cramer-Rao-based bound
+    (outside the depth of field, where z is defined by the growing defocus blur)."""
+    from ptrack.calibration import prepare_gdpt
+
+    errs, bounds, dxy = [], [], []
+    for z, img in zip(BF_Z, render.calibration_images(BF_Z, shape=(64, 64), seed=2, **BF_KW)):
+        df = locate_3d(prepare_gdpt(img, bf_calib, brightfield=True), bf_calib)
+        assert len(df) == 1
+        dxy.append((df["x_px"].iloc[0] - 31, df["y_px"].iloc[0] - 31))
+        if z > BF_DOF:
+            errs.append(df["z"].iloc[0] - z)
+            bounds.append(_bf_bound(z))
+        else:
+            assert abs(df["z"].iloc[0] - z) < BF_DOF / 2       # inside the depth of field: only coarse
+    # x, y from the correlation peak of a blurred, noisy ring (1 px = 325 nm here)
+    assert np.abs(dxy).max() < 1.0 and np.sqrt(np.mean(np.square(dxy))) < 0.3, dxy
+    errs, bounds = np.abs(errs), np.asarray(bounds)
+    assert np.all(errs < bounds), np.c_[errs, bounds] * 1e9
+    assert np.sqrt(np.mean(errs ** 2)) < 0.03 * (BF_Z[-1] - BF_Z[0])
+
+
+def test_brightfield_movie_several_defocus_values(bf_calib):
+    """A rendered brightfield movie frame (dark particles on a bright field, 5 heights): every particle is found
+    once, at its x, y and z (z within the bound above), nothing else."""
+    from ptrack.calibration import prepare_gdpt
+    from ptrack.table import make_table
+
+    zs = np.array([5.3e-6, 7.6e-6, 9.1e-6, 11.7e-6, 13.8e-6])
+    xs = np.array([30.3, 90.6, 150.2, 60.8, 121.4])
+    ys = np.array([35.5, 40.1, 30.7, 100.4, 105.9])
+    n_f = 2
+    fr = np.repeat(np.arange(n_f), len(xs))
+    p = np.tile(np.arange(len(xs)), n_f)
+    table = make_table(fr, fr * 0.1, p, xs[p] * BF_PX, ys[p] * BF_PX, zs[p], meta={"frame_interval": 0.1})
+    bounds = np.array([_bf_bound(z) for z in zs])
+    for frame in render.render_frames(table, shape=(140, 180), seed=7, **BF_KW):
+        df = locate_3d(prepare_gdpt(frame, bf_calib, brightfield=True), bf_calib)
+        assert len(df) == len(xs), df
+        d = np.hypot(df["x_px"].to_numpy()[:, None] - xs, df["y_px"].to_numpy()[:, None] - ys)
+        near = d.argmin(1)
+        assert sorted(near) == list(range(len(xs))) and d.min(1).max() < 0.6, df
+        dz = np.abs(df["z"].to_numpy() - zs[near])
+        assert np.all(dz < bounds[near]), (dz * 1e9, bounds[near] * 1e9)
