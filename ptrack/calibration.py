@@ -592,8 +592,14 @@ class _Residual:
         self.inside = np.zeros(padded.shape, bool)
         self.inside[pad:padded.shape[0] - pad, pad:padded.shape[1] - pad] = True
 
-    def model(self, hit):
-        """(slices, model image) of one hit, amplitude fitted by least squares to the current residual."""
+    def model(self, hit, cap: float | None = None):
+        """(slices, model image) of one hit, amplitude fitted by least squares to the current residual.
+
+        ``cap``: largest amplitude subtracted. Two overlapping images matched
+        as one are fitted about twice as bright as one particle; subtracting
+        at most one particle's worth leaves the other's light in the residual,
+        where a later round finds it.
+        """
         t = _shifted(self.tmpl[hit["page"]], hit["di"], hit["dj"])
         T = t.shape[0]
         sl = (slice(hit["top"], hit["top"] + T), slice(hit["left"], hit["left"] + T))
@@ -605,6 +611,8 @@ class _Residual:
         hit["snr"] = a * math.sqrt(den) / self.noise
         hit["amp"] = a          # brightness relative to the calibration particle (whole image, also outside the frame)
         hit["mass"] = a * float(np.clip(t, 0, None).sum())   # whole image, also the part outside the frame
+        if cap is not None and a > cap:
+            a = cap
         return sl, (a * tt).astype(np.float32)
 
     def subtract(self, sl, mod):
@@ -651,6 +659,97 @@ def _candidates(padded, pad, tmpl, calib: Calibration, shape, mask, n_templates:
     return r, c, v
 
 
+def _best_in_window(resimg, pad, tmpl, calib: Calibration, r0, r1, c0, c1, n_templates: int):
+    """(row, col, correlation) of the best candidate centre inside frame rows r0..r1, cols c0..c1 of the residual,
+    from the maximum over ``n_templates`` representative templates (as :func:`_candidates`, on a crop)."""
+    import cv2
+
+    K = len(tmpl)
+    pages = np.unique(np.round(np.linspace(0, K - 1, min(n_templates, K))).astype(int))
+    best = (None, None, -2.0)
+    Hp, Wp = resimg.shape
+    for k in pages:
+        t = tmpl[k]
+        T = t.shape[0]
+        oy, ox = int(round(calib.centers[k, 0])), int(round(calib.centers[k, 1]))
+        # template corners whose centre falls in the window
+        tr0, tr1 = max(r0 + pad - oy, 0), min(r1 + pad - oy, Hp - T)
+        tc0, tc1 = max(c0 + pad - ox, 0), min(c1 + pad - ox, Wp - T)
+        if tr1 < tr0 or tc1 < tc0:
+            continue
+        R = cv2.matchTemplate(resimg[tr0:tr1 + T, tc0:tc1 + T], t, cv2.TM_CCOEFF_NORMED)
+        R = np.nan_to_num(R, nan=-1.0)
+        i, j = np.unravel_index(int(np.argmax(R)), R.shape)
+        if R[i, j] > best[2]:
+            best = (tr0 + i + oy - pad, tc0 + j + ox - pad, float(R[i, j]))
+    return best
+
+
+def _window_rss(res, slices):
+    """Sum of squared residuals over the union of the given (row slice, col slice) windows, inside the frame."""
+    r0 = min(s[0].start for s in slices)
+    r1 = max(s[0].stop for s in slices)
+    c0 = min(s[1].start for s in slices)
+    c1 = max(s[1].stop for s in slices)
+    w = res.img[r0:r1, c0:c1]
+    return float((w[res.inside[r0:r1, c0:c1]] ** 2).sum())
+
+
+def _split(res, pad, tmpl, calib, hit, model, cap, n_parts, m, z_points, cm_drop, coarse, n_templates, gain):
+    """Fit one (over-bright) match as ``n_parts`` particles of capped brightness.
+
+    The match's model is taken out of the residual; the first part starts at
+    the match, each further one at the best representative-template
+    correlation inside the match's window on what is left; then each part is
+    re-matched with the others subtracted (3 sweeps). Kept (models subtracted,
+    returned) when the residual sum of squares over the window drops by more
+    than ``gain`` noise variances against the single match with a free
+    amplitude; otherwise the residual is left as it was and (None, None) is
+    returned.
+    """
+    res.add(*model)
+    single = dict(hit)
+    sl_s, mod_s = res.model(single)
+    parts, pm = [], []
+    h1 = dict(hit)
+    pm.append(res.model(h1, cap(h1)))
+    res.subtract(*pm[0])
+    parts.append(h1)
+    T = tmpl[hit["page"]].shape[0]
+    r0, c0 = hit["top"] - pad, hit["left"] - pad
+    for _ in range(1, n_parts):
+        r, c, _v = _best_in_window(res.img, pad, tmpl, calib, r0, r0 + T - 1, c0, c0 + T - 1, n_templates)
+        if r is None:
+            break
+        hj = _match_one(res.img, pad, r, c, tmpl, calib, m, z_points, cm_drop, coarse)
+        pm.append(res.model(hj, cap(hj)))
+        res.subtract(*pm[-1])
+        parts.append(hj)
+    for _ in range(3):
+        for j in range(len(parts)):
+            res.add(*pm[j])
+            hj = _match_one(res.img, pad, parts[j]["y_px"], parts[j]["x_px"], tmpl, calib, min(m, 2), z_points,
+                            cm_drop, coarse)
+            pm[j] = res.model(hj, cap(hj))
+            res.subtract(*pm[j])
+            parts[j] = hj
+    union = [sl_s] + [p[0] for p in pm]
+    rss_n = _window_rss(res, union)
+    for p in pm:
+        res.add(*p)
+    res.subtract(sl_s, mod_s)
+    rss_1 = _window_rss(res, union)
+    res.add(sl_s, mod_s)
+    close = any(math.hypot(a["x_px"] - b["x_px"], a["y_px"] - b["y_px"]) < 1.0
+                for i, a in enumerate(parts) for b in parts[i + 1:])
+    if len(parts) < 2 or close or rss_1 - rss_n < gain * res.noise ** 2:
+        res.subtract(*model)
+        return None, None
+    for p in pm:
+        res.subtract(*p)
+    return parts, pm
+
+
 def _overlap_snr(hit, hits, tmpl) -> float:
     """Largest amplitude SNR of the accepted particles whose template windows overlap ``hit``'s (0 if none)."""
     best = 0.0
@@ -667,7 +766,8 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
               cm_min: float = 0.5, min_area: int = 4, smooth: float = 1.5, n_templates: int = 7,
               c_candidate: float = 0.3, rounds: int = 2, refine: int = 2, z_points: int | None = None,
               cm_drop: float = 0.15, snr_fit: float = 40.0, snr_rel: float = 0.15,
-              min_mass: float = 0.5, max_mass: float | None = 1.8, coarse: int = 4) -> pd.DataFrame:
+              min_mass: float = 0.5, max_mass: float | None = 1.8, coarse: int = 4,
+              amp_cap: float | None = 1.3, split_at: float | None = 1.6, split_gain: float = 100.0) -> pd.DataFrame:
     """Detect defocused particles in a background-subtracted frame and measure x, y, z, Cm.
 
     Built for realistic (crowded) frames, where defocused images overlap and
@@ -743,6 +843,16 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
     mask = cv2.dilate(signal, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))) > 0
     res = _Residual(padded, pad, tmpl, noise_sigma(padded[pad:pad + H, pad:pad + W]))
     hits, models = [], []
+    # brightness: fluorescence, the fitted model's photons (conserved whatever z); brightfield, the fitted
+    # amplitude relative to the calibration particle's image at the same height (the contrast changes with
+    # defocus, so a sum over the image would not be comparable between heights)
+    signed = bool(calib.info.get("signed"))
+    bkey = "amp" if signed else "mass"
+    per_amp = np.ones(len(tmpl)) if signed else np.array([float(np.clip(t, 0, None).sum()) for t in tmpl])
+    ref = [0.0]          # the frame's typical particle brightness, once known
+
+    def cap(h):
+        return amp_cap * ref[0] / per_amp[h["page"]] if (amp_cap and ref[0] > 0) else None
 
     def xy():
         return np.array([(h["y_px"], h["x_px"]) for h in hits], float).reshape(-1, 2)
@@ -761,13 +871,24 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
                 continue
             if hits and np.hypot(xy()[:, 0] - hit["y_px"], xy()[:, 1] - hit["x_px"]).min() <= 2.0:
                 continue
-            sl, mod = res.model(hit)
+            sl, mod = res.model(hit, cap(hit))
             if hit["snr"] < max(snr_fit, snr_rel * _overlap_snr(hit, hits, tmpl)):
                 continue
             res.subtract(sl, mod)
             hits.append(hit)
             models.append((sl, mod))
             new += 1
+        if rnd == 0 and amp_cap and len(hits) >= 3:
+            # two overlapping images matched as one were fitted (and subtracted) about twice as bright as a
+            # particle: subtract at most amp_cap x the typical brightness, so the other one's light stays in the
+            # residual for the next round
+            ref[0] = float(np.median([h[bkey] for h in hits]))
+            for i, h in enumerate(hits):
+                if h[bkey] > amp_cap * ref[0]:
+                    res.add(*models[i])
+                    models[i] = res.model(h, cap(h))
+                    res.subtract(*models[i])
+                    new += 1
         if new == 0 and rnd > 0:
             break
         for _ in range(int(refine)):
@@ -783,7 +904,7 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
                 others = [hits[j] for j in alive] + hits[i + 1:]
                 if others and min(np.hypot(o["y_px"] - h["y_px"], o["x_px"] - h["x_px"]) for o in others) <= 2.0:
                     continue        # converged onto another particle: one image, found twice
-                sl, mod = res.model(h)
+                sl, mod = res.model(h, cap(h))
                 res.subtract(sl, mod)
                 hits[i], models[i] = h, (sl, mod)
                 alive.append(i)
@@ -791,12 +912,31 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
             models = [models[i] for i in alive]
         if new == 0:
             break
+    if split_at and ref[0] > 0:
+        # images of 2-3 particles closer than their image size, matched as one brighter particle at a compromise
+        # z (even with the amplitude cap, the residual keeps looking like the merged image): fit them as 2 or 3
+        # particles of the typical brightness and keep the split if it explains the window far better
+        n0 = len(hits)
+        for i in range(n0):
+            h = hits[i]
+            if h[bkey] < split_at * ref[0]:
+                continue
+            n_parts = int(min(3, max(2, round(h[bkey] / ref[0]))))
+            parts, pm = _split(res, pad, tmpl, calib, h, models[i], cap, n_parts, m, z_points, cm_drop, coarse,
+                               n_templates, split_gain)
+            if parts is None:
+                continue
+            ok = all(p["cm"] >= cm_min and p["snr"] >= snr_fit and p[bkey] >= min_mass * ref[0] for p in parts)
+            if not ok:
+                for sl_, mod_ in pm:
+                    res.add(sl_, mod_)
+                res.subtract(*models[i])
+                continue
+            hits[i], models[i] = parts[0], pm[0]
+            hits.extend(parts[1:])
+            models.extend(pm[1:])
     # the leftovers of an imperfectly subtracted neighbour can correlate well (Cm is blind to amplitude) but
     # carry a fraction of a particle's light: drop images much fainter than the frame's typical particle
-    # brightness: fluorescence, the fitted model's photons (conserved whatever z); brightfield, the fitted
-    # amplitude relative to the calibration particle's image at the same height (the contrast changes with
-    # defocus, so a sum over the image would not be comparable between heights)
-    bkey = "amp" if calib.info.get("signed") else "mass"
     mass_ref = float(np.median([h[bkey] for h in hits])) if len(hits) >= 3 else 0.0
     out = {k: [] for k in ("x_px", "y_px", "z", "cm", "page", "snr", "mass", "edge")}
     for h, (sl, mod) in zip(hits, models):
