@@ -39,8 +39,13 @@ projection ``r = (I - tau w') d`` that removes the fitted drift (so the
 estimate is unbiased whatever the track length; the naive CVE on residuals is
 biased low by about 3/n). Estimation alternates: end-to-end drift ->
 (D, sigma^2) -> GLS drift -> (D, sigma^2) -> GLS drift. Because the weights are
-even functions of the noise, the drift estimate stays exactly unbiased; its
-stated variance uses the estimated (D, sigma^2).
+even functions of the noise, the drift estimate stays exactly unbiased. The
+weights need a positive-definite S, so negative estimates of D or sigma^2
+(common for short tracks) are clipped for them; the stated variance
+``w' S w`` is linear in (D, sigma^2) and is evaluated with the unclipped,
+unbiased estimates (clipping would overstate it by ~10 % for 30-frame tracks
+with sigma^2 > D dt), falling back to the clipped ones if it comes out
+negative.
 
 What is here
 ------------
@@ -149,6 +154,8 @@ def _noise_moments(d, tau, kk, w, n, dt, R, scr):
     det = coef[0, 0] * coef[1, 1] - coef[0, 1] * coef[1, 0]
     D = (Q1 * coef[1, 1] - Q2 * coef[0, 1]) / det
     s2 = (coef[0, 0] * Q2 - coef[1, 0] * Q1) / det
+    D_raw = D
+    s2_raw = s2
     if not (s2 >= 0.0):
         # sigma^2 estimated negative: set it to 0 and use the combination Q1 + 2 Q2
         s2 = 0.0
@@ -159,7 +166,19 @@ def _noise_moments(d, tau, kk, w, n, dt, R, scr):
         if not (s2 > 0.0):
             # no fluctuation at all (e.g. exact straight line): tiny floor keeps S invertible
             s2 = 1e-300
-    return D, s2
+    return D, s2, D_raw, s2_raw
+
+
+@njit(cache=True)
+def _quad_var(w, kk, n, dt, R, D, s2):
+    """w' S(D, sigma^2) w for the tridiagonal increment covariance (linear in D and sigma^2)."""
+    e = 2.0 * R * D * dt - s2
+    acc = 0.0
+    for i in range(n):
+        acc += (2.0 * D * dt * (kk[i] - 2.0 * R) + 2.0 * s2) * w[i] * w[i]
+        if i > 0:
+            acc += 2.0 * e * w[i] * w[i - 1]
+    return acc
 
 
 @njit(cache=True)
@@ -181,7 +200,7 @@ def _gls(d, tau, kk, n, dt, R, D, s2, a_scr, c_scr, u):
 
 @njit(cache=True)
 def _velocity_kernel(vals, frames, off, dt, R, D_in, s2_in, min_obs, n_iter):
-    """Per track (off) and component (rows of vals): v, var(v), D, sigma^2, n positions, time span.
+    """Per track (off) and component (rows of vals): v, var(v), D, sigma^2, n positions, time span, raw D, raw sigma^2.
 
     ``vals`` (k, N) in track order, NaN where a component is missing; ``frames``
     (N,) int; ``D_in``/``s2_in`` (k, n_p): given noise parameters (NaN:
@@ -189,7 +208,7 @@ def _velocity_kernel(vals, frames, off, dt, R, D_in, s2_in, min_obs, n_iter):
     """
     k_c = vals.shape[0]
     n_p = off.shape[0] - 1
-    out = np.full((k_c, n_p, 6), np.nan)
+    out = np.full((k_c, n_p, 8), np.nan)
     maxlen = 1
     for p in range(n_p):
         if off[p + 1] - off[p] > maxlen:
@@ -238,16 +257,24 @@ def _velocity_kernel(vals, frames, off, dt, R, D_in, s2_in, min_obs, n_iter):
                     span += tau[i]
                 for i in range(n):
                     w[i] = 1.0 / span          # end-to-end: the GLS for sigma = 0, R = 0
-                D, s2 = _noise_moments(d, tau, kk, w, n, dt, R, scr)
+                D, s2, D_raw, s2_raw = _noise_moments(d, tau, kk, w, n, dt, R, scr)
             v, var = _gls(d, tau, kk, n, dt, R, D, s2, a_scr, c_scr, w)
             if not given:
                 for _ in range(n_iter - 1):
-                    D, s2 = _noise_moments(d, tau, kk, w, n, dt, R, scr)
+                    D, s2, D_raw, s2_raw = _noise_moments(d, tau, kk, w, n, dt, R, scr)
                     v, var = _gls(d, tau, kk, n, dt, R, D, s2, a_scr, c_scr, w)
+                # stated variance w'S w with the unclipped (unbiased) D, sigma^2: linear in them, so
+                # unbiased; the clipped values (needed for positive-definite weights) overstate it
+                var_u = _quad_var(w, kk, n, dt, R, D_raw, s2_raw)
+                if var_u > 0.0:
+                    var = var_u
             out[k, p, 0] = v
             out[k, p, 1] = var
             out[k, p, 2] = D
             out[k, p, 3] = s2
+            if not given:
+                out[k, p, 6] = D_raw
+                out[k, p, 7] = s2_raw
     return out
 
 
@@ -318,7 +345,7 @@ def _check_blur(motion_blur) -> float:
 # ---------------------------------------------------------------------------
 
 def particle_velocity(df: pd.DataFrame, axes=None, motion_blur: float = 1 / 6, min_frames: int = MIN_FRAMES,
-                      n_iter: int = 2) -> pd.DataFrame:
+                      noise: str = "track", n_iter: int = 2) -> pd.DataFrame:
     """Drift velocity of each track by generalised least squares, with its standard error.
 
     Parameters
@@ -336,6 +363,15 @@ def particle_velocity(df: pd.DataFrame, axes=None, motion_blur: float = 1 / 6, m
     min_frames : int
         Fewest positions of a track (per axis) for a velocity; shorter tracks
         get NaN (at least :data:`MIN_FRAMES`).
+    noise : {"track", "pooled"}
+        Where the GLS weights and the stated error get (D, sigma^2) from:
+        each track's own drift-corrected increments (default; right when
+        particles differ in size or height), or the ensemble's pooled
+        estimate per axis (right for monodisperse particles under one
+        localisation error: exact errors even for short, noise-dominated
+        tracks, where per-track estimates make the stated error ~5-10 %
+        conservative, e.g. 30 frames with sigma^2 = 2 D dt). The ``D{a}`` and
+        ``sigma_{a}`` columns are per track either way.
     n_iter : int
         GLS / noise-estimate alternations (2 is converged in practice).
 
@@ -360,6 +396,22 @@ def particle_velocity(df: pd.DataFrame, axes=None, motion_blur: float = 1 / 6, m
     parts, off, frames, vals, dt, order = _sorted_tracks(df, comps)
     nan_in = np.full((len(comps), len(parts)), np.nan)
     res = _velocity_kernel(vals, frames, off, dt, R, nan_in, nan_in, min_frames, int(n_iter))
+    if noise == "pooled":
+        # unclipped per-track estimates are unbiased: pool them weighted by the number of increments
+        n_inc = np.maximum(res[:, :, 4] - 1, 0)
+        ok = np.isfinite(res[:, :, 6]) & np.isfinite(res[:, :, 7])
+        wsum = np.where(ok, n_inc, 0).sum(axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            D_p = np.where(ok, res[:, :, 6] * n_inc, 0).sum(axis=1) / wsum
+            s2_p = np.where(ok, res[:, :, 7] * n_inc, 0).sum(axis=1) / wsum
+        D_in = np.repeat(np.maximum(D_p, 0.0)[:, None], len(parts), axis=1)
+        s2_in = np.repeat(np.maximum(s2_p, 0.0)[:, None], len(parts), axis=1)
+        D_in[~ok] = np.nan                                     # tracks too short: still no velocity
+        pooled = _velocity_kernel(vals, frames, off, dt, R, D_in, s2_in, min_frames, 1)
+        res[:, :, 0] = np.where(ok, pooled[:, :, 0], np.nan)
+        res[:, :, 1] = np.where(ok, pooled[:, :, 1], np.nan)
+    elif noise != "track":
+        raise UserError(f"noise = {noise!r} is not understood", "give 'track' or 'pooled'")
     return _per_particle_frame(df, parts, off, frames, order, comps, res, dt, R)
 
 
@@ -485,10 +537,13 @@ def velocity_profile(df: pd.DataFrame, bins=10, z_range=None, axes=None, motion_
     (bin width x frame interval) where the velocity changes with z; keep bins
     much wider than sigma_z.
 
-    Within a bin, each particle's run of consecutive increments is a piece
-    whose drift is the GLS estimate with that particle's (D, sigma^2) from its
-    whole track (:func:`particle_velocity`); pieces are combined by inverse
-    variance, with a bootstrap over whole particles.
+    Within a bin, each particle's runs of consecutive increments are pieces;
+    the bin's drift is their summed displacement over their summed duration
+    (uniform weights: weighting increments by their place in a piece, as the
+    GLS does, would again select the bin-leaving steps and bias v). Its model
+    error uses each particle's (D, sigma^2) from its whole track
+    (:func:`particle_velocity`: piece variance ``2 D T - 4 R D dt + 2
+    sigma^2``); ``v_err`` is a bootstrap over whole particles.
 
     Parameters
     ----------
@@ -551,46 +606,43 @@ def velocity_profile(df: pd.DataFrame, bins=10, z_range=None, axes=None, motion_
     keep = (b[run_start] >= 0) & (ext_end - run_start >= 2)
     rs, re_ = run_start[keep], ext_end[keep]
     lens = re_ - rs
-    idx = np.repeat(rs - np.r_[0, np.cumsum(lens)[:-1]], lens) + np.arange(lens.sum())
-    p_off = np.r_[0, np.cumsum(lens)].astype(np.int64)
     p_bin = b[rs]
     p_par = seg[rs]
+    first, last = rs, re_ - 1
+    span = (frames[last] - frames[first]) * dt                 # piece durations, s
+    n_inc = lens - 1
     # noise parameters of the parent tracks
     pos_in_vel = pd.Index(vel["particle"].to_numpy()).get_indexer(parts)
-    D_in = np.full((len(comps), len(rs)), np.nan)
-    s2_in = np.full((len(comps), len(rs)), np.nan)
-    for j, c in enumerate(comps):
-        Dv = np.where(pos_in_vel >= 0, vel[f"D{c}"].to_numpy(float)[pos_in_vel], np.nan)
-        sv = np.where(pos_in_vel >= 0, vel[f"sigma_{c}"].to_numpy(float)[pos_in_vel], np.nan) ** 2
-        D_in[j] = Dv[p_par]
-        s2_in[j] = sv[p_par]
-    res = _velocity_kernel(np.ascontiguousarray(vals[:, idx]), np.ascontiguousarray(frames[idx]), p_off, dt, R,
-                           D_in, s2_in, 2, 1)
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    has_next = np.r_[seg[1:] == seg[:-1], False]
     rows = []
-    n_inc_piece = lens - 1
+    disp, pvar = {}, {}
+    for j, c in enumerate(comps):
+        Dv = np.where(pos_in_vel >= 0, vel[f"D{c}"].to_numpy(float)[pos_in_vel], np.nan)[p_par]
+        sv = np.where(pos_in_vel >= 0, vel[f"sigma_{c}"].to_numpy(float)[pos_in_vel], np.nan)[p_par] ** 2
+        disp[c] = vals[j, last] - vals[j, first]
+        # variance of a piece's end-to-end displacement: 1' S 1 = 2 D T - 4 R D dt + 2 sigma^2
+        pvar[c] = 2 * Dv * span - 4 * R * Dv * dt + 2 * sv
     for k in range(nb):
         sel = p_bin == k
-        inb = (b == k) & (np.r_[seg[1:] == seg[:-1], False])      # increments starting in the bin
+        inb = (b == k) & has_next                                   # increments starting in the bin
         row = {"z_lo": edges[k], "z_hi": edges[k + 1], "z_mid": 0.5 * (edges[k] + edges[k + 1]),
                "z_mean": float(np.mean(z[inb])) if inb.any() else np.nan,
-               "n_particles": int(len(np.unique(p_par[sel]))), "n_increments": int(n_inc_piece[sel].sum())}
-        for j, c in enumerate(comps):
-            v, var = res[j, sel, 0], res[j, sel, 1]
-            ok = np.isfinite(v) & np.isfinite(var) & (var > 0)
+               "n_particles": int(len(np.unique(p_par[sel]))), "n_increments": int(n_inc[sel].sum())}
+        for c in comps:
+            ok = sel & np.isfinite(disp[c]) & np.isfinite(pvar[c]) & (span > 0)
             if not ok.any():
                 row.update({f"v{c}": np.nan, f"v{c}_err": np.nan, f"v{c}_err_model": np.nan})
                 continue
-            pp = p_par[sel][ok]
-            uniq, inv = np.unique(pp, return_inverse=True)
-            S1 = np.bincount(inv, weights=v[ok] / var[ok])
-            S0 = np.bincount(inv, weights=1.0 / var[ok])
-            mean = float(S1.sum() / S0.sum())
-            err_model = float(1.0 / math.sqrt(S0.sum()))
+            uniq, inv = np.unique(p_par[ok], return_inverse=True)
+            S = np.bincount(inv, weights=disp[c][ok])
+            T = np.bincount(inv, weights=span[ok])
+            mean = float(S.sum() / T.sum())
+            err_model = float(math.sqrt(max(pvar[c][ok].sum(), 0.0)) / T.sum())
             err = err_model
             if len(uniq) >= 3 and n_boot > 0:
                 C = _boot_counts(len(uniq), int(n_boot), rng)
-                err = float(np.std((C @ S1) / (C @ S0), ddof=1))
+                err = float(np.std((C @ S) / (C @ T), ddof=1))
             row.update({f"v{c}": mean, f"v{c}_err": err, f"v{c}_err_model": err_model})
         rows.append(row)
     prof = pd.DataFrame(rows)

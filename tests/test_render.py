@@ -389,7 +389,9 @@ def test_shipped_datasets_are_consistent():
             assert len(tf.pages) == params["n_frames"] == truth["frame"].max() + 1
             assert tf.pages[0].shape == tuple(params["shape"])
         assert "Regenerate with:" in (d / "README.txt").read_text()
-        assert truth.attrs["ptrack"]["pixel_size"] == pytest.approx(PX)
+        # epd_brightfield is imaged at 20x (325 nm pixels), the others at 63x
+        px = 6.5e-6 / 20.0 if name == "epd_brightfield" else PX
+        assert truth.attrs["ptrack"]["pixel_size"] == pytest.approx(px)
     p2 = json.loads((DATA / "diffusion2d" / "params.json").read_text())
     assert p2["D_true"] == pytest.approx(stokes_einstein(250e-9), rel=1e-12)
     assert p2["D_truth_tracks"] == pytest.approx(p2["D_true"], rel=0.04)
@@ -399,6 +401,19 @@ def test_shipped_datasets_are_consistent():
     epd = read_table(DATA / "epd_brightfield" / "truth.parquet")
     first, last = epd[epd["frame"] == 0], epd[epd["frame"] == epd["frame"].max()]
     assert last["z"].mean() < first["z"].mean()
+    # the brightfield calibration stack covers every height of the movie; all particles above focus
+    pe = json.loads((DATA / "epd_brightfield" / "params.json").read_text())
+    ze = pd.read_csv(DATA / "epd_brightfield" / "calib_z.csv")
+    assert ze["z"].min() <= epd["z"].min() and epd["z"].max() <= ze["z"].max()
+    assert epd["z"].min() - pe["focal_plane"] > 3e-6
+    cp = json.loads((DATA / "epd_brightfield" / "calib_params.json").read_text())
+    assert cp["brightfield"] and cp["pixel_size"] == pytest.approx(pe["pixel_size"])
+    assert cp["focal_plane"] == pe["focal_plane"]
+    # deposited rows sit at contact; the truth's drift is the Henry velocity plus settling
+    dep = epd["deposited"].astype(bool)
+    assert np.allclose(epd.loc[dep, "z"], pe["radius"]) and (~dep).sum() > 300
+    assert pe["vz_drift"] == pytest.approx(-(pe["v_henry"] + pe["v_sedimentation"]))
+    assert sum(f.stat().st_size for f in (DATA / "epd_brightfield").iterdir()) < 3.2e6
 
 
 def test_shipped_truth_is_what_the_dataset_command_makes():

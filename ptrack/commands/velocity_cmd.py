@@ -30,6 +30,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--motion-blur", type=float, default=1 / 6,
                    help="motion-blur parameter R: 1/6 full-frame exposure (default), 0 instantaneous (simulations)")
     p.add_argument("--bins", type=int, default=8, help="height bins of the velocity profile against z (default 8; 0: none)")
+    p.add_argument("--noise", choices=("track", "pooled"), default="track",
+                   help="D and localisation error for the weights and errors: each track's own (default) or pooled over "
+                        "the tracks (monodisperse particles, one localisation error: exact errors for short tracks)")
     p.add_argument("--min-frames", type=int, default=5, help="shortest track (positions) given a velocity (default 5, at least 4)")
     p.add_argument("--weights", choices=("inverse_variance", "equal"), default="inverse_variance",
                    help="ensemble mean weights (default inverse_variance; 'equal' when the particles truly differ)")
@@ -86,7 +89,7 @@ def run(args) -> int:
 
     df = read_table(traj)
     axes = V._parse_axes(args.axes) if args.axes else V._default_axes(df)
-    vel = V.particle_velocity(df, axes=axes, motion_blur=R, min_frames=args.min_frames)
+    vel = V.particle_velocity(df, axes=axes, motion_blur=R, min_frames=args.min_frames, noise=args.noise)
     n_ok = int(np.isfinite(vel[f"v{axes[0]}"].to_numpy(float)).sum())
     if n_ok == 0:
         raise UserError(f"no track has {args.min_frames} or more positions (longest: {int(vel['n_frames'].max())})",
@@ -99,7 +102,7 @@ def run(args) -> int:
 
     # ---- report
     print(f"{traj}: {len(vel)} tracks, {n_ok} with >= {args.min_frames} positions; frame interval "
-          f"{vel.attrs['velocity']['frame_interval']:.6g} s; motion blur R = {R:.4g}")
+          f"{vel.attrs['velocity']['frame_interval']:.6g} s; motion blur R = {R:.4g}; noise parameters per {args.noise}")
     print("ensemble drift velocity (um/s; " + ("inverse-variance" if args.weights == "inverse_variance" else "equal")
           + f" weights; error: bootstrap over particles, {args.n_boot} resamples):")
     print(f"{'axis':<5s} {'v (um/s)':>20s} {'model SE':>9s} {'chi2/dof':>9s} {'tracks':>7s}")
@@ -144,7 +147,7 @@ def run(args) -> int:
         summary = {
             "source": str(traj), "axes": "".join(axes), "motion_blur": R,
             "frame_interval": vel.attrs["velocity"]["frame_interval"], "n_tracks": len(vel), "n_tracks_used": n_ok,
-            "weights": args.weights, "n_boot": args.n_boot, "seed": args.seed,
+            "weights": args.weights, "noise": args.noise, "n_boot": args.n_boot, "seed": args.seed,
             "v": {r["axis"]: _clean(r["v"]) for _, r in ens.iterrows()},
             "v_err": {r["axis"]: _clean(r["v_err"]) for _, r in ens.iterrows()},
             "v_err_model": {r["axis"]: _clean(r["v_err_model"]) for _, r in ens.iterrows()},

@@ -17,12 +17,20 @@ truth and parameters, small enough to commit:
     cylindrical-lens astigmatism, and a calibration stack (``calib.tif``,
     ``calib_z.csv``) over +-3 um in 0.1 um steps.
 ``epd_brightfield``
-    Brightfield (dark particles on a bright field), 0.8 um polystyrene
-    particles drifting down to the substrate at the Henry velocity
-    ``v = 2 eps eps0 zeta E f(kappa a) / (3 mu)`` (exact Henry f, from
-    :mod:`sim.electrokinetics`) plus Brownian motion, sticking on
-    contact (z = R); 30 fps as in the seed's EPD observations; the focal plane
-    is on the substrate so particles come into focus as they deposit.
+    Brightfield (dark particles on a bright field), 16 polystyrene particles
+    of 0.8 um starting 2.4-14 um above the electrode (z = 0) and drifting down
+    at the Henry velocity ``v = 2 eps eps0 zeta E f(kappa a) / (3 mu)``
+    (exact Henry f, from :mod:`sim.electrokinetics`; zeta -40 mV, E 250 V/m,
+    Debye length 100 nm: 5.25 um/s) plus Stokes settling (0.018 um/s) and
+    Brownian motion, sticking on contact (z = R; truth column ``deposited``);
+    30 fps as in the seed's EPD observations, 100 frames, 128x128 px.
+    Imaged so that GDPT can measure the drift: 20x / NA 0.4 air objective,
+    550 nm, 325 nm pixels, focal plane 3 um below the electrode (every
+    particle above focus, outside the depth of field), and a brightfield
+    calibration stack (``calib.tif``, ``calib_z.csv``) over z = 0.4-15.4 um
+    in 0.25 um steps. No wall hydrodynamics (free-space mobility down to
+    contact). ``params.json`` holds ``v_henry``, ``v_sedimentation``,
+    ``vz_drift``, ``D_true``, ``focal_plane`` and each particle's contact frame.
 """
 from __future__ import annotations
 
@@ -163,50 +171,97 @@ def diffusion3d_scene(seed: int = 20202) -> dict:
 
 
 def epd_brightfield_scene(seed: int = 20203) -> dict:
-    """Trajectories and rendering settings of ``epd_brightfield`` (no rendering)."""
+    """Trajectories and rendering settings of ``epd_brightfield`` (no rendering).
+
+    Designed so that the drift towards the substrate can be measured from the
+    movie by GDPT: a 20x / NA 0.4 air objective and 6.5 um camera pixels (325 nm
+    in the sample, Nyquist-sampled at 550 nm), where the geometric defocus blur
+    grows by ``tan(asin(0.4 / 1.333))`` = 0.31 um per um, so a particle 20 um
+    above focus is a ring 40 px across (at NA 0.75 and 103 nm pixels it would be
+    a disk of ~260 px and undetectable). The focal plane is 3 um below the
+    electrode surface (z = 0), so all particles are on one side of focus (no
+    +- ambiguity) and at least 3.4 um from it, outside the depth of field
+    (~+-2.3 um) where the image hardly changes with z: GDPT's z error on this
+    movie is ~0.3 um at 0-5 um and ~0.5 um at 5-10 um (pipeline of Nov 2026),
+    against ~1 um with the focus on the substrate. The brightfield calibration
+    stack covers z = R (contact) .. 15.4 um, every height of the movie.
+    """
     from sim.electrokinetics import henry_function, henry_velocity
 
+    from ptrack.constants import STANDARD_GRAVITY
+
     R = 0.4e-6                     # 0.8 um polystyrene, seed chapter 4
+    rho_p, rho_f = 1050.0, 998.2   # kg/m^3, polystyrene and water at 20 C
     zeta = -0.040                  # V
     debye = 100e-9                 # m, dilute aqueous suspension
-    E = 250.0                      # V/m, towards the substrate (weak field: slow enough to follow)
+    E = 250.0                      # V/m, towards the substrate (weak field: 5 um/s, slow enough to follow at 30 fps)
     f = float(henry_function(R / debye))
     v = abs(float(henry_velocity(E, zeta, R, debye, EPS_WATER, MU_WATER)))  # m/s, 2 eps eps0 |zeta| E f / (3 mu)
+    # Stokes settling adds 0.018 um/s (0.35 % of v): included so that the truth is the physics
+    v_sed = 2.0 / 9.0 * (rho_p - rho_f) * STANDARD_GRAVITY * R**2 / MU_WATER
+    vz = -(v + v_sed)
     D = stokes_einstein(R)
-    optics = Optics()
-    camera = Camera(photons=12000.0, background=800.0)
-    px = sample_pixel_size(optics, camera.pixel_pitch)
+    optics = Optics(na=0.4, wavelength=550e-9, magnification=20.0)   # brightfield, green filter
+    # brightfield as extinction: a 0.8 um PS sphere removes about twice its cross-section (0.5 um^2) of the
+    # illumination, 10x the 0.106 um^2 of a pixel; bright illumination (10000 photons/px, 6000 e-, a fifth
+    # of an sCMOS well) as for fast brightfield imaging
+    camera = Camera(photons=100000.0, background=10000.0)
+    px = sample_pixel_size(optics, camera.pixel_pitch)    # 325 nm
     H = W = 128
-    dt, F, N = 1.0 / 30.0, 100, 12
+    dt, F, N = 1.0 / 30.0, 100, 16
+    z_top = 14e-6
+    focal_plane = -3e-6            # focus 3 um below the electrode surface: every height >= 3.4 um from focus
     rng = np.random.default_rng(seed)
-    margin = 12 * px
+    margin = 18 * px               # the blur disk of a particle 15 um above the substrate has a radius of 18 px
     lo = np.array([margin, margin])
     hi = np.array([(W - 1) * px - margin, (H - 1) * px - margin])
     xy = rng.uniform(lo, hi, size=(N, 2))
-    z = R + rng.uniform(1e-6, 12e-6, size=N)
-    sub = 10
+    z = R + rng.uniform(2e-6, z_top - R, size=N)
+    sub = 20
     h = dt / sub
     pos = np.empty((F, N, 3))
     pos[0] = np.c_[xy, z]
     stuck = np.zeros(N, bool)
+    contact_frame = np.full(N, -1)
+    # Overdamped Brownian dynamics with free-space mobility (no wall hydrodynamics: the hindrance is
+    # below 10 % only for gaps above ~5 radii, so rows within 2 um of the substrate are slower in reality)
     for i in range(1, F):
         for _ in range(sub):
             mov = ~stuck
             step = math.sqrt(2 * D * h) * rng.standard_normal((N, 3))
             xy[mov] = _reflect(xy[mov] + step[mov, :2], lo, hi)
-            z[mov] = z[mov] - v * h + step[mov, 2]
+            z[mov] = z[mov] + vz * h + step[mov, 2]
             hit = mov & (z <= R)
             z[hit] = R                  # deposited: sticks on contact (irreversible)
             stuck |= hit
+        contact_frame[stuck & (contact_frame < 0)] = i
         pos[i] = np.c_[xy, z]
-    meta = {"pixel_size": px, "frame_interval": dt, "source": "sim.render.datasets epd_brightfield", "radius": R}
+    table = _table_from(pos, dt, {"pixel_size": px, "frame_interval": dt, "radius": R,
+                                  "source": "sim.render.datasets epd_brightfield"}, R)
+    cf = np.where(contact_frame < 0, F, contact_frame)
+    table["deposited"] = table["frame"].to_numpy() >= cf[table["particle"].to_numpy()]
+    # calibration: a particle on the substrate, the stage stepped through z; 4 frames averaged per height
+    # (4x the photons of a movie frame, same contrast), as a careful calibration does
+    n_avg = 4
+    calib = {"z_min": R, "z_max": R + 15e-6, "z_step": 0.25e-6, "shape": (64, 64), "radius": R,
+             "camera": Camera(photons=n_avg * camera.photons, background=n_avg * camera.background),
+             "seed": seed + 2, "brightfield": True, "frames_averaged": n_avg}
     extra = {"dataset": "epd_brightfield", "radius": R, "zeta": zeta, "debye_length": debye, "field": E,
              "henry_f": f, "henry_f_formula": "exact (sim.electrokinetics.henry_function)", "v_henry": v,
-             "vz_drift": -v, "D_true": D, "walk_seed": seed,
-             "deposit": "particles stick at z = R (contact with the substrate at z = 0)",
-             "focal_plane_note": "focal plane on the particles' centres at contact (z = R)"}
-    return {"table": _table_from(pos, dt, meta, R), "shape": (H, W), "optics": optics, "camera": camera,
-            "focal_plane": R, "brightfield": True, "seed": seed + 1, "extra": extra}
+             "v_sedimentation": v_sed, "particle_density": rho_p, "fluid_density": rho_f,
+             "vz_drift": vz, "D_true": D, "walk_seed": seed, "start_heights": [R + 2e-6, z_top],
+             "deposit": "particles stick at z = R (contact with the substrate at z = 0); truth column 'deposited' "
+                        "is True from the first frame after contact",
+             "contact_frame": [int(c) if c >= 0 else None for c in contact_frame],
+             "focal_plane_note": "focal plane 3 um below the electrode surface (z = 0): all particles above focus, "
+                                 "at least 3.4 um from it, where the defocused image changes fast with z",
+             "wall_hydrodynamics": "none (free-space mobility down to contact)",
+             "calibration": {"stack": "calib.tif", "z": "calib_z.csv", "z_min": calib["z_min"],
+                             "z_max": calib["z_max"], "z_step": calib["z_step"], "brightfield": True,
+                             "photons": calib["camera"].photons, "background": calib["camera"].background,
+                             "frames_averaged": n_avg}}
+    return {"table": table, "shape": (H, W), "optics": optics, "camera": camera,
+            "focal_plane": focal_plane, "brightfield": True, "seed": seed + 1, "extra": extra, "calibration": calib}
 
 
 def _make(name: str, out: Path) -> dict:
@@ -217,6 +272,7 @@ def _make(name: str, out: Path) -> dict:
     if cal:
         paths.update(render_calibration(out, cal["z_min"], cal["z_max"], cal["z_step"], shape=cal["shape"],
                                         optics=sc["optics"], camera=cal["camera"], radius=cal["radius"],
+                                        focal_plane=sc["focal_plane"], brightfield=cal.get("brightfield", False),
                                         seed=cal["seed"], compression="zlib"))
     keys = list(SCENES)
     nxt = keys[keys.index(name) + 1] if keys.index(name) + 1 < len(keys) else None
@@ -255,13 +311,15 @@ def write_index(root: Path) -> Path:
         "  truth.parquet  ground-truth trajectories (ptrack table: frame, t, particle, x, y, z in m,",
         "                 x_px, y_px, photons, signal, defocus, radius, in_frame)",
         "  params.json    every rendering parameter (optics, camera, seeds, D_true, ...)",
-        "  calib.tif, calib_z.csv, calib_params.json  (diffusion3d) defocus calibration stack and its z (m)",
+        "  calib.tif, calib_z.csv, calib_params.json  (diffusion3d, epd_brightfield) defocus calibration",
+        "                 stack and its z (m)",
         "",
     ]
     summary = {
         "diffusion2d": "2D Brownian motion near focus, R = 250 nm, 10 fps, 130 frames, 192x192 px; D_true in params.json",
         "diffusion3d": "3D Brownian motion over +-2.5 um with astigmatism, 100 frames, 160x160 px; calibration +-3 um / 0.1 um",
-        "epd_brightfield": "brightfield, 0.8 um particles drifting onto the substrate at the Henry velocity, 30 fps, 100 frames",
+        "epd_brightfield": "brightfield, 0.8 um particles drifting onto the substrate at the Henry velocity, 30 fps,\n"
+                           "                  100 frames, 20x/NA 0.4; brightfield calibration 0.4-15.4 um / 0.25 um",
     }
     for name in SCENES:
         lines.append(f"  {name + '/':18s}{summary.get(name, '')}")
