@@ -158,6 +158,25 @@ def test_instantaneous_velocity_exact_on_straight_lines_and_noise_as_documented(
     assert np.isnan(V.instantaneous_velocity(two_d)["vx"]).all()          # a single position has no velocity
 
 
+def test_trim_deposited_drops_rows_from_touch_down_on():
+    rng = np.random.default_rng(3)
+    n_f, R = 60, 0.4e-6
+    z = np.maximum(8e-6 - 5e-6 * np.arange(n_f) * DT * 3, R)               # reaches contact at frame 31
+    zn = z + rng.normal(0, 0.1e-6, n_f)
+    zn[10] = R                                                               # one outlier near contact: no cut
+    fr = np.r_[np.arange(n_f), np.arange(n_f)]
+    pa = np.r_[np.zeros(n_f, int), np.ones(n_f, int)]
+    zz = np.r_[zn, np.full(n_f, 5e-6)]                                       # particle 1 never comes down
+    df = make_table(fr, fr * DT, pa, np.zeros(2 * n_f), np.zeros(2 * n_f), zz, meta={"frame_interval": DT})
+    out = V.trim_deposited(df, R, tolerance=0.3e-6, window=5)
+    f0 = out[out["particle"] == 0]["frame"]
+    touch = int(np.argmax(z <= R + 1e-12))
+    assert touch - 3 <= f0.max() + 1 <= touch and f0.min() == 0 and len(f0) == f0.max() + 1
+    assert (out["particle"] == 1).sum() == n_f
+    with pytest.raises(UserError, match="heights"):
+        V.trim_deposited(df.assign(z=np.nan), R)
+
+
 def test_bad_input_is_a_user_error():
     df2 = make_table(np.arange(10), np.arange(10) * DT, np.zeros(10, int), np.arange(10) * 1e-7, np.zeros(10))
     with pytest.raises(UserError, match="2D"):
@@ -192,7 +211,7 @@ def test_velocity_command_writes_table_profile_plot_and_json(tmp_path, capsys):
     traj = write_table(df, tmp_path / "tr.parquet")
     out, js, rep = tmp_path / "v.csv", tmp_path / "s.json", tmp_path / "rep"
     assert _run_cmd([str(traj), "--motion-blur", "0", "--noise", "pooled", "--out", str(out), "--report", str(rep), "--json", str(js),
-                     "--bins", "4", "--reference=-5.2e-6"]) == 0
+                     "--bins", "4", "--reference=-5.2e-6", "--contact", "1e-6"]) == 0
     text = capsys.readouterr().out
     assert "um/s" in text and "bootstrap" in text and "standard errors" in text
     vel = pd.read_csv(out, comment="#")
@@ -212,6 +231,8 @@ def test_velocity_command_bad_input_leaves_no_output(tmp_path):
         _run_cmd([str(traj), "--min-frames", "2"])
     with pytest.raises(UserError):
         _run_cmd([str(tmp_path / "missing.parquet")])
+    with pytest.raises(UserError, match="heights"):
+        _run_cmd([str(traj), "--contact", "4e-7", "--out", str(tmp_path / "o.csv")])
     assert not (tmp_path / "o.csv").exists() and not list(tmp_path.glob("*.png"))
 
 
@@ -241,3 +262,8 @@ def test_velocity_of_the_true_epd_tracks_recovers_the_henry_velocity():
     for c in "xy":
         assert abs(ens.loc[c, "v"]) < 3 * ens.loc[c, "v_err"]
     assert vel["Dz"].median() == pytest.approx(params["D_true"], rel=0.3)
+    # the deposited rows found from z alone (as for measured tracks): the true ones plus the last 2-3 frames of the approach
+    trimmed = V.trim_deposited(truth, params["radius"], tolerance=0.3e-6, window=3)
+    assert 0.9 < len(trimmed) / len(moving) <= 1.0
+    ens2 = V.ensemble_velocity(V.particle_velocity(trimmed, motion_blur=0.0), n_boot=2000, seed=0).set_index("axis")
+    assert abs(ens2.loc["z", "v"] - vz) < 3 * ens2.loc["z", "v_err"]

@@ -7,7 +7,9 @@ error; D and the localisation error per axis come from the drift-corrected
 increments. Prints the ensemble drift (inverse-variance weighted mean,
 bootstrap standard error over particles) and, for 3D tables, the velocity
 against height z in bins (EPD: velocity against distance from the electrode),
-in um/s. Writes the per-particle table (CSV, SI units: m/s, m^2/s, m), a PNG
+in um/s. With --contact Z (the particle centre's height at contact), each
+track's rows from its touch-down on the substrate are dropped first, so the
+drift is that before deposition. Writes the per-particle table (CSV, SI units: m/s, m^2/s, m), a PNG
 (tracks coloured by drift speed, velocity against z with error bars) and,
 with --json, a summary.
 """
@@ -20,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import UserError, atomic_output
+from ..errors import UserError, atomic_output, check_positive
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -30,9 +32,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--motion-blur", type=float, default=1 / 6,
                    help="motion-blur parameter R: 1/6 full-frame exposure (default), 0 instantaneous (simulations)")
     p.add_argument("--bins", type=int, default=8, help="height bins of the velocity profile against z (default 8; 0: none)")
-    p.add_argument("--noise", choices=("track", "pooled"), default="track",
-                   help="D and localisation error for the weights and errors: each track's own (default) or pooled over "
-                        "the tracks (monodisperse particles, one localisation error: exact errors for short tracks)")
+    p.add_argument("--noise", choices=("pooled", "track"), default="pooled",
+                   help="D and localisation error for the weights and errors: pooled over the tracks (default; "
+                        "monodisperse particles, one localisation error) or each track's own (particles that differ)")
+    p.add_argument("--contact", type=float, default=None, metavar="Z",
+                   help="EPD: height of a particle's centre at contact with the substrate, m (e.g. its radius); "
+                        "each track's rows from its touch-down on are dropped (running median of z within "
+                        "--contact-tolerance of Z)")
+    p.add_argument("--contact-tolerance", type=float, default=0.5e-6,
+                   help="m, a few times the z localisation error (default 0.5e-6)")
     p.add_argument("--min-frames", type=int, default=5, help="shortest track (positions) given a velocity (default 5, at least 4)")
     p.add_argument("--weights", choices=("inverse_variance", "equal"), default="inverse_variance",
                    help="ensemble mean weights (default inverse_variance; 'equal' when the particles truly differ)")
@@ -88,6 +96,13 @@ def run(args) -> int:
         raise UserError(f"--report {report} exists and is not a directory", "give a directory")
 
     df = read_table(traj)
+    n_rows_all = len(df)
+    if args.contact is not None:
+        check_positive("--contact-tolerance", args.contact_tolerance, allow_zero=True)
+        df = V.trim_deposited(df, args.contact, args.contact_tolerance)
+        if df.empty:
+            raise UserError(f"every row is within {args.contact_tolerance} m of contact (z <= {args.contact + args.contact_tolerance} m)",
+                            "check --contact (m, the particle centre at contact) and the table's z")
     axes = V._parse_axes(args.axes) if args.axes else V._default_axes(df)
     vel = V.particle_velocity(df, axes=axes, motion_blur=R, min_frames=args.min_frames, noise=args.noise)
     n_ok = int(np.isfinite(vel[f"v{axes[0]}"].to_numpy(float)).sum())
@@ -102,7 +117,10 @@ def run(args) -> int:
 
     # ---- report
     print(f"{traj}: {len(vel)} tracks, {n_ok} with >= {args.min_frames} positions; frame interval "
-          f"{vel.attrs['velocity']['frame_interval']:.6g} s; motion blur R = {R:.4g}; noise parameters per {args.noise}")
+          f"{vel.attrs['velocity']['frame_interval']:.6g} s; motion blur R = {R:.4g}; noise parameters: {args.noise}")
+    if args.contact is not None:
+        print(f"deposition: {n_rows_all - len(df)} of {n_rows_all} rows dropped from touch-down on "
+              f"(z within {args.contact_tolerance * 1e6:.3g} um of contact at {args.contact * 1e6:.3g} um)")
     print("ensemble drift velocity (um/s; " + ("inverse-variance" if args.weights == "inverse_variance" else "equal")
           + f" weights; error: bootstrap over particles, {args.n_boot} resamples):")
     print(f"{'axis':<5s} {'v (um/s)':>20s} {'model SE':>9s} {'chi2/dof':>9s} {'tracks':>7s}")
@@ -147,7 +165,9 @@ def run(args) -> int:
         summary = {
             "source": str(traj), "axes": "".join(axes), "motion_blur": R,
             "frame_interval": vel.attrs["velocity"]["frame_interval"], "n_tracks": len(vel), "n_tracks_used": n_ok,
-            "weights": args.weights, "noise": args.noise, "n_boot": args.n_boot, "seed": args.seed,
+            "weights": args.weights, "noise": args.noise, "contact": args.contact,
+            "contact_tolerance": args.contact_tolerance if args.contact is not None else None,
+            "rows_used": len(df), "rows_read": n_rows_all, "n_boot": args.n_boot, "seed": args.seed,
             "v": {r["axis"]: _clean(r["v"]) for _, r in ens.iterrows()},
             "v_err": {r["axis"]: _clean(r["v_err"]) for _, r in ens.iterrows()},
             "v_err_model": {r["axis"]: _clean(r["v_err_model"]) for _, r in ens.iterrows()},
