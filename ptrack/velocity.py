@@ -888,7 +888,10 @@ def drifting_tracks(n_particles: int, n_frames: int, D: float, dt: float, v, sig
 
 def plot_velocity(df: pd.DataFrame, vel: pd.DataFrame, path, profile: pd.DataFrame | None = None,
                   title: str | None = None, v_ref: float | None = None):
-    """PNG: tracks (x, y) coloured by each particle's drift speed, and v against z with error bars.
+    """PNG: tracks coloured by each particle's drift speed, and v against z with error bars.
+
+    The left panel is a side view (x against z) for 3D tables, the image
+    plane (x, y) for 2D ones.
 
     Parameters
     ----------
@@ -913,8 +916,10 @@ def plot_velocity(df: pd.DataFrame, vel: pd.DataFrame, path, profile: pd.DataFra
     fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(11, 4.6), dpi=110)
     srt = df.sort_values(["particle", "frame"], kind="stable")
     part = srt["particle"].to_numpy()
+    side = "z" in srt.columns and np.isfinite(srt["z"].to_numpy(dtype=float)).any()
     x = srt["x"].to_numpy(dtype=float) * 1e6
-    y = srt["y"].to_numpy(dtype=float) * 1e6
+    # 3D: side view (x against height z) shows the approach to the electrode; 2D: the image plane
+    y = srt["z" if side else "y"].to_numpy(dtype=float) * 1e6
     same = part[1:] == part[:-1]
     segs = np.stack([np.c_[x[:-1], y[:-1]], np.c_[x[1:], y[1:]]], axis=1)[same]
     speed_of = pd.Series(vel["speed"].to_numpy(float) * 1e6, index=vel["particle"].to_numpy())
@@ -927,11 +932,15 @@ def plot_velocity(df: pd.DataFrame, vel: pd.DataFrame, path, profile: pd.DataFra
     if (~good).any():
         ax0.add_collection(LineCollection(segs[~good], colors="0.7", linewidths=0.8))
     ax0.autoscale()
-    ax0.set_aspect("equal", adjustable="datalim")
-    ax0.invert_yaxis()
     ax0.set_xlabel("x (um)")
-    ax0.set_ylabel("y (um)")
-    ax0.set_title("tracks coloured by drift speed")
+    if side:
+        ax0.set_ylabel("height z (um)")
+        ax0.set_title("tracks (side view) coloured by drift speed")
+    else:
+        ax0.set_aspect("equal", adjustable="datalim")
+        ax0.invert_yaxis()
+        ax0.set_ylabel("y (um)")
+        ax0.set_title("tracks coloured by drift speed")
     has_z = "vz" in vel.columns and np.isfinite(vel["vz"].to_numpy(float)).any()
     if profile is not None and len(profile):
         zc = profile["z_mean"].fillna(profile["z_mid"]).to_numpy(float) * 1e6

@@ -121,6 +121,14 @@ def run(args) -> int:
     if args.contact is not None:
         print(f"deposition: {n_rows_all - len(df)} of {n_rows_all} rows dropped from touch-down on "
               f"(z within {args.contact_tolerance * 1e6:.3g} um of contact at {args.contact * 1e6:.3g} um)")
+    elif "z" in axes:
+        z = df["z"].to_numpy(dtype=float)
+        z = z[np.isfinite(z)]
+        low = z[z < np.percentile(z, 1) + 0.3e-6]
+        if len(low) > 0.2 * len(z):
+            print(f"hint: {len(low) / len(z):.0%} of the rows sit within 0.3 um of the lowest height "
+                  f"({np.median(low) * 1e6:.3g} um): deposited particles pull the drift towards 0; "
+                  f"for the drift before deposition give --contact {np.median(low):.3g}")
     print("ensemble drift velocity (um/s; " + ("inverse-variance" if args.weights == "inverse_variance" else "equal")
           + f" weights; error: bootstrap over particles, {args.n_boot} resamples):")
     print(f"{'axis':<5s} {'v (um/s)':>20s} {'model SE':>9s} {'chi2/dof':>9s} {'tracks':>7s}")
