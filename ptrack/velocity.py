@@ -389,7 +389,9 @@ def particle_velocity(df: pd.DataFrame, axes=None, motion_blur: float = 1 / 6, m
         ``v{a}`` (m/s), ``v{a}_err`` (standard error, m/s), ``D{a}`` (m^2/s,
         from the drift-corrected increments), ``sigma_{a}`` (localisation
         error, m). Axes not analysed are NaN. ``speed`` = |v| over the
-        analysed axes (m/s). Metadata: the table's, plus ``motion_blur``.
+        analysed axes (m/s). Metadata: the table's, plus ``attrs["velocity"]``
+        with ``motion_blur``, ``frame_interval``, ``axes``, ``noise`` and the
+        pooled ``D_pooled`` / ``sigma_pooled`` per axis.
     """
     comps = _default_axes(df) if axes is None else _parse_axes(axes)
     R = _check_blur(motion_blur)
@@ -399,11 +401,11 @@ def particle_velocity(df: pd.DataFrame, axes=None, motion_blur: float = 1 / 6, m
                         f"a velocity with a standard error needs at least {MIN_FRAMES} positions per track")
     if int(n_iter) < 1:
         raise UserError(f"n_iter = {n_iter} must be at least 1", "use 2")
+    if noise not in ("pooled", "track"):
+        raise UserError(f"noise = {noise!r} is not understood", "give 'pooled' or 'track'")
     parts, off, frames, vals, dt, order = _sorted_tracks(df, comps)
     nan_in = np.full((len(comps), len(parts)), np.nan)
     res = _velocity_kernel(vals, frames, off, dt, R, nan_in, nan_in, min_frames, int(n_iter))
-    if noise not in ("pooled", "track"):
-        raise UserError(f"noise = {noise!r} is not understood", "give 'pooled' or 'track'")
     # unclipped per-track estimates are unbiased: pool them weighted by the number of increments
     n_inc = np.maximum(res[:, :, 4] - 1, 0)
     ok = np.isfinite(res[:, :, 6]) & np.isfinite(res[:, :, 7])

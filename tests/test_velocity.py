@@ -153,7 +153,7 @@ def test_instantaneous_velocity_exact_on_straight_lines_and_noise_as_documented(
     iv = V.instantaneous_velocity(bt, window=1)
     inner = iv[(iv["frame"] > 0) & (iv["frame"] < 59)]
     assert inner["vz"].std() == pytest.approx(math.sqrt(2 * D0 / (2 * DT)), rel=0.05)
-    assert inner["vz"].mean() == pytest.approx(VEL[2], abs=0.05e-6 * 10)
+    assert inner["vz"].mean() == pytest.approx(VEL[2], abs=0.15e-6)
     two_d = make_table([0], [0.0], [1], [0.0], [0.0])
     assert np.isnan(V.instantaneous_velocity(two_d)["vx"]).all()          # a single position has no velocity
 
@@ -187,6 +187,10 @@ def test_bad_input_is_a_user_error():
         V.particle_velocity(df2, min_frames=2)
     with pytest.raises(UserError, match="motion_blur"):
         V.particle_velocity(df2, motion_blur=0.3)
+    with pytest.raises(UserError, match="noise"):
+        V.particle_velocity(df2, noise="global")
+    with pytest.raises(UserError, match="twice"):
+        V.particle_velocity(pd.concat([df2, df2.iloc[:1]]))
     with pytest.raises(UserError, match="heights"):
         V.velocity_profile(df2)
     short = V.particle_velocity(df2.iloc[:3])                                # too short: NaN, not a crash
