@@ -182,8 +182,9 @@ def epd_brightfield_scene(seed: int = 20203) -> dict:
     electrode surface (z = 0), so all particles are on one side of focus (no
     +- ambiguity) and at least 3.4 um from it, outside the depth of field
     (~+-2.3 um) where the image hardly changes with z: GDPT's z error on this
-    movie is ~0.3 um at 0-5 um and ~0.5 um at 5-10 um (pipeline of Nov 2026),
-    against ~1 um with the focus on the substrate. The brightfield calibration
+    movie is ~0.3 um below 10 um and ~0.7 um at 10-15 um (ptrack pipeline of
+    23 Nov 2026, bench/bench_velocity.py --movie), against ~1 um near the
+    substrate with the focus on it. The brightfield calibration
     stack covers z = R (contact) .. 15.4 um, every height of the movie.
     """
     from sim.electrokinetics import henry_function, henry_velocity
