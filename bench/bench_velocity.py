@@ -75,7 +75,7 @@ def section_a(n_tracks: int):
 
 
 def section_b():
-    print("\nB. speed of particle_velocity (x, y, z; per-track noise estimates, 2 GLS iterations)")
+    print("\nB. speed of particle_velocity (x, y, z; defaults: per-track noise estimates with 2 GLS iterations, then a pooled GLS pass)")
     V.particle_velocity(V.drifting_tracks(10, 20, D0, DT, VEL, seed=0))       # compile
     print(f"   {'tracks':>7s} {'frames':>6s} {'rows':>9s} {'wall s':>7s} {'rows/s':>10s}")
     for n_p, n_f in [(1000, 100), (10000, 100), (2000, 1000)]:
