@@ -32,6 +32,7 @@ import pandas as pd
 
 from .errors import UserError, check_positive, require_file
 
+_DEBUG = bool(__import__("os").environ.get("G_DEBUG"))
 __all__ = ["Calibration", "read_calib_z", "build_calibration", "load_calibration", "prepare_gdpt", "check_pixel_size",
            "detect_blobs", "match_templates", "locate_3d"]
 
@@ -453,8 +454,13 @@ def _prepare_matching(img, calib: Calibration, smooth: float, margin: int):
     return padded, pad, tmpl
 
 
-def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm_drop, coarse: int = 0):
+def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm_drop, coarse: int = 0,
+               near: int | None = None, span: int = 6):
     """Best template, z, sub-pixel x, y and Cm of the particle image near frame pixel (r, c).
+
+    ``near``: a page already known to be close (a re-match after the
+    neighbours changed); only pages within ``span`` of it are tried, and the
+    window grows only if the best one is at the window's end.
 
     Returns a dict with ``x_px``, ``y_px``, ``z``, ``cm``, ``page`` and the
     placement of the best template in ``padded`` (``top``, ``left`` integer
@@ -471,7 +477,27 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
         win = padded[ri - h - m: ri + h + m + 1, ci - h - m: ci + h + m + 1]
         return cv2.matchTemplate(win, t, cv2.TM_CCOEFF_NORMED)
 
-    if coarse and K > 4 * coarse:
+    if near is not None:
+        maps = np.full((K, 2 * m + 1, 2 * m + 1), -1.0, np.float32)
+        lo, hi = max(0, near - span), min(K, near + span + 1)
+        for k in range(lo, hi):
+            maps[k] = corr(k)
+        while True:     # the best page at the edge of the window: extend it (a particle that moved far in z)
+            best = int(np.argmax(np.nan_to_num(maps[lo:hi], nan=-1.0).reshape(hi - lo, -1).max(1))) + lo
+            if best == lo and lo > 0:
+                nlo = max(0, lo - span)
+                for k in range(nlo, lo):
+                    maps[k] = corr(k)
+                lo = nlo
+            elif best == hi - 1 and hi < K:
+                nhi = min(K, hi + span)
+                for k in range(hi, nhi):
+                    maps[k] = corr(k)
+                hi = nhi
+            else:
+                break
+        maps = np.nan_to_num(maps, nan=-1.0)
+    elif coarse and K > 4 * coarse:
         # coarse to fine: every ``coarse``-th page first, then every page within 2 coarse steps of the best
         maps = np.full((K, 2 * m + 1, 2 * m + 1), -1.0, np.float32)
         first = np.arange(0, K, coarse)
@@ -623,7 +649,7 @@ class _Residual:
 
 
 def _candidates(padded, pad, tmpl, calib: Calibration, shape, mask, n_templates: int, c_min: float,
-                exclude=None, exclude_r: float = 3.0):
+                exclude=None, exclude_r: float = 3.0, with_page: bool = False):
     """Candidate centres (row, col) by correlating a few representative templates over the whole frame.
 
     The GDPTlab way: the frame is correlated with ``n_templates`` pages spread
@@ -638,11 +664,14 @@ def _candidates(padded, pad, tmpl, calib: Calibration, shape, mask, n_templates:
     K = len(tmpl)
     pages = np.unique(np.round(np.linspace(0, K - 1, min(n_templates, K))).astype(int))
     cmap = np.full((H, W), -1.0, np.float32)
+    which = np.zeros((H, W), np.int32)
     for k in pages:
         t = tmpl[k]
         R = cv2.matchTemplate(padded, t, cv2.TM_CCOEFF_NORMED)
         oy, ox = int(round(calib.centers[k, 0])), int(round(calib.centers[k, 1]))
         R = np.nan_to_num(R[pad - oy: pad - oy + H, pad - ox: pad - ox + W], nan=-1.0)
+        better = R > cmap
+        which[better] = k
         np.maximum(cmap, R, out=cmap)
     local = cmap >= cv2.dilate(cmap, np.ones((3, 3), np.uint8))
     ok = local & mask & (cmap >= c_min)
@@ -656,7 +685,37 @@ def _candidates(padded, pad, tmpl, calib: Calibration, shape, mask, n_templates:
         d, _ = cKDTree(exclude).query(np.column_stack([r, c]).astype(float))
         keep = d > exclude_r
         r, c, v = r[keep], c[keep], v[keep]
+    if with_page:
+        return r, c, v, which[r, c]
     return r, c, v
+
+
+def _still_there(resimg, pad, tmpl, calib: Calibration, r, c, k, c_min: float, snr_min: float, noise: float) -> bool:
+    """Whether a candidate found at the start of a round still has an image on the current residual.
+
+    Later candidates of a round were found before the particles accepted
+    since were subtracted: most of them were pieces of those images. One
+    correlation with the representative template ``k`` that found it (at
+    the found position, 3 x 3 shifts) and its least-squares amplitude
+    decide, instead of a full match against every page.
+    """
+    import cv2
+
+    t = tmpl[k]
+    T = t.shape[0]
+    oy, ox = int(round(calib.centers[k, 0])), int(round(calib.centers[k, 1]))
+    top, left = int(r) + pad - oy - 1, int(c) + pad - ox - 1
+    if top < 0 or left < 0 or top + T + 2 > resimg.shape[0] or left + T + 2 > resimg.shape[1]:
+        return True
+    win = resimg[top:top + T + 2, left:left + T + 2]
+    R = np.nan_to_num(cv2.matchTemplate(win, t, cv2.TM_CCOEFF_NORMED), nan=-1.0)
+    if float(R.max()) < c_min:
+        return False
+    i, j = np.unravel_index(int(np.argmax(R)), R.shape)
+    w = win[i:i + T, j:j + T]
+    den = float((t * t).sum())
+    a = float((t * w).sum()) / den if den > 0 else 0.0
+    return a * math.sqrt(den) / noise >= snr_min
 
 
 def _best_in_window(resimg, pad, tmpl, calib: Calibration, r0, r1, c0, c1, n_templates: int):
@@ -728,7 +787,7 @@ def _split(res, pad, tmpl, calib, hit, model, cap, n_parts, m, z_points, cm_drop
     for _ in range(3):
         for j in range(len(parts)):
             res.add(*pm[j])
-            hj = _match_one(res.img, pad, parts[j]["y_px"], parts[j]["x_px"], tmpl, calib, min(m, 2), z_points,
+            hj = _match_one(res.img, pad, parts[j]["y_px"], parts[j]["x_px"], tmpl, calib, m, z_points,
                             cm_drop, coarse)
             pm[j] = res.model(hj, cap(hj))
             res.subtract(*pm[j])
@@ -764,10 +823,11 @@ def _overlap_snr(hit, hits, tmpl) -> float:
 
 def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, margin: int = 4,
               cm_min: float = 0.5, min_area: int = 4, smooth: float = 1.5, n_templates: int = 7,
-              c_candidate: float = 0.3, rounds: int = 2, refine: int = 2, z_points: int | None = None,
+              c_candidate: float = 0.3, rounds: int = 2, refine: int = 4, z_points: int | None = None,
               cm_drop: float = 0.15, snr_fit: float = 40.0, snr_rel: float = 0.15,
               min_mass: float = 0.5, max_mass: float | None = 1.8, coarse: int = 4,
-              amp_cap: float | None = 1.3, split_at: float | None = 1.6, split_gain: float = 100.0) -> pd.DataFrame:
+              amp_cap: float | None = 1.15, split_at: float | None = 1.6, split_gain: float = 100.0,
+              split_chi2: float = 3.0) -> pd.DataFrame:
     """Detect defocused particles in a background-subtracted frame and measure x, y, z, Cm.
 
     Built for realistic (crowded) frames, where defocused images overlap and
@@ -858,14 +918,18 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
         return np.array([(h["y_px"], h["x_px"]) for h in hits], float).reshape(-1, 2)
 
     for rnd in range(max(1, int(rounds))):
-        rr, cc, _ = _candidates(res.img, pad, tmpl, calib, (H, W), mask, n_templates, c_candidate,
-                                exclude=xy() if hits else None)
+        rr, cc, _, kk = _candidates(res.img, pad, tmpl, calib, (H, W), mask, n_templates, c_candidate,
+                                    exclude=xy() if hits else None, with_page=True)
         new = 0
-        for r, c in zip(rr, cc):
+        n_at_start = len(hits)
+        for r, c, k0 in zip(rr, cc, kk):
             if hits:
                 d = np.hypot(xy()[:, 0] - r, xy()[:, 1] - c).min()
                 if d <= 3.0:
                     continue
+            if len(hits) > n_at_start and not _still_there(res.img, pad, tmpl, calib, r, c, k0, c_candidate,
+                                                           0.5 * snr_fit, res.noise):
+                continue
             hit = _match_one(res.img, pad, r, c, tmpl, calib, m, z_points, cm_drop, coarse)
             if hit["cm"] < cm_min:
                 continue
@@ -889,20 +953,81 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
                     models[i] = res.model(h, cap(h))
                     res.subtract(*models[i])
                     new += 1
+        if split_at:
+            # images of 2-3 particles closer than their image size, matched as one brighter particle at a compromise
+            # z (even with the amplitude cap, the residual keeps looking like the merged image): fit them as 2 or 3
+            # particles of the typical brightness and keep the split if it explains the window far better.
+            # Tried for matches brighter than split_at x the frame's typical particle or, in frames too sparse
+            # to know it, whose window is left with a residual chi^2 per pixel above split_chi2
+            n0 = len(hits)
+            for i in range(n0):
+                h = hits[i]
+                if h.get("split_tried"):
+                    continue
+                if ref[0] > 0:
+                    if h[bkey] < split_at * ref[0]:
+                        continue
+                    n_parts = int(min(3, max(2, round(h[bkey] / ref[0]))))
+                    part_cap = cap
+                else:
+                    sl_ = models[i][0]
+                    ins = res.inside[sl_]
+                    chi2 = _window_rss(res, [sl_]) / max(int(ins.sum()), 1) / res.noise ** 2
+                    if _DEBUG:
+                        print("chi2", h["x_px"], h["y_px"], h["z"], chi2)
+                    if chi2 < split_chi2:
+                        continue
+                    n_parts = 2
+                    b_part = h[bkey] / n_parts
+
+                    def part_cap(p, b_part=b_part):
+                        return amp_cap * b_part / per_amp[p["page"]]
+                h["split_tried"] = True
+                parts, pm = _split(res, pad, tmpl, calib, h, models[i], part_cap, n_parts, m, z_points, cm_drop,
+                                   coarse, n_templates, split_gain)
+                if parts is None:
+                    continue
+                b_min = min_mass * (ref[0] if ref[0] > 0 else h[bkey] / n_parts)
+                ok = all(p["cm"] >= cm_min and p["snr"] >= snr_fit and p[bkey] >= b_min for p in parts)
+                if not ok:
+                    for sl_, mod_ in pm:
+                        res.add(sl_, mod_)
+                    res.subtract(*models[i])
+                    continue
+                for p_ in parts:
+                    p_["split_tried"] = True        # no split of a split: two halves of one elongated image
+                hits[i], models[i] = parts[0], pm[0]
+                hits.extend(parts[1:])
+                new += len(parts) - 1
+                models.extend(pm[1:])
+        if _DEBUG:
+            print("round", rnd, "after accept/split:", [(round(h["x_px"], 1), round(h["y_px"], 1), round(h["z"] * 1e6, 2), round(h["cm"], 3), round(h[bkey] / ref[0], 2) if ref[0] else round(h[bkey])) for h in hits])
         if new == 0 and rnd > 0:
             break
+        # which hits changed since their neighbours were last matched: new ones (no "settled" key) and those
+        # whose re-match moved them; a pass re-matches only hits next to a changed one
         for _ in range(int(refine)):
-            alive = []
+            alive, moved, dropped = [], set(), False
             for i, h in enumerate(hits):
-                if _overlap_snr(h, hits[:i] + hits[i + 1:], tmpl) == 0:
+                others = hits[:i] + hits[i + 1:]
+                if _overlap_snr(h, others, tmpl) == 0:
                     alive.append(i)         # alone: its first match saw no neighbour, nothing to refine
+                    h["settled"] = True
+                    continue
+                if h.get("settled") and not any(not o.get("settled") or id(o) in moved
+                                                for o in others if _overlap_snr(h, [dict(o, snr=1.0)], tmpl) > 0):
+                    alive.append(i)         # its neighbourhood did not change since its last re-match
                     continue
                 res.add(*models[i])
                 h2 = _match_one(res.img, pad, h["y_px"], h["x_px"], tmpl, calib, min(m, 2), z_points, cm_drop, coarse)
                 if h2["cm"] >= h["cm"] - 0.02:
+                    if (h2["page"] != h["page"] or abs(h2["x_px"] - h["x_px"]) > 0.1
+                            or abs(h2["y_px"] - h["y_px"]) > 0.1):
+                        moved.add(id(h2))
                     h = h2
                 others = [hits[j] for j in alive] + hits[i + 1:]
                 if others and min(np.hypot(o["y_px"] - h["y_px"], o["x_px"] - h["x_px"]) for o in others) <= 2.0:
+                    dropped = True
                     continue        # converged onto another particle: one image, found twice
                 sl, mod = res.model(h, cap(h))
                 res.subtract(sl, mod)
@@ -910,31 +1035,14 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
                 alive.append(i)
             hits = [hits[i] for i in alive]
             models = [models[i] for i in alive]
+            for h in hits:
+                h["settled"] = not dropped and id(h) not in moved
+            if not moved and not dropped:
+                break
+        if _DEBUG:
+            print("round", rnd, "after refine:", [(round(h["x_px"], 1), round(h["y_px"], 1), round(h["z"] * 1e6, 2), round(h["cm"], 3)) for h in hits])
         if new == 0:
             break
-    if split_at and ref[0] > 0:
-        # images of 2-3 particles closer than their image size, matched as one brighter particle at a compromise
-        # z (even with the amplitude cap, the residual keeps looking like the merged image): fit them as 2 or 3
-        # particles of the typical brightness and keep the split if it explains the window far better
-        n0 = len(hits)
-        for i in range(n0):
-            h = hits[i]
-            if h[bkey] < split_at * ref[0]:
-                continue
-            n_parts = int(min(3, max(2, round(h[bkey] / ref[0]))))
-            parts, pm = _split(res, pad, tmpl, calib, h, models[i], cap, n_parts, m, z_points, cm_drop, coarse,
-                               n_templates, split_gain)
-            if parts is None:
-                continue
-            ok = all(p["cm"] >= cm_min and p["snr"] >= snr_fit and p[bkey] >= min_mass * ref[0] for p in parts)
-            if not ok:
-                for sl_, mod_ in pm:
-                    res.add(sl_, mod_)
-                res.subtract(*models[i])
-                continue
-            hits[i], models[i] = parts[0], pm[0]
-            hits.extend(parts[1:])
-            models.extend(pm[1:])
     # the leftovers of an imperfectly subtracted neighbour can correlate well (Cm is blind to amplitude) but
     # carry a fraction of a particle's light: drop images much fainter than the frame's typical particle
     mass_ref = float(np.median([h[bkey] for h in hits])) if len(hits) >= 3 else 0.0
