@@ -32,7 +32,6 @@ import pandas as pd
 
 from .errors import UserError, check_positive, require_file
 
-_DEBUG = bool(__import__("os").environ.get("G_DEBUG"))
 __all__ = ["Calibration", "read_calib_z", "build_calibration", "load_calibration", "prepare_gdpt", "check_pixel_size",
            "detect_blobs", "match_templates", "locate_3d"]
 
@@ -727,6 +726,9 @@ def _best_in_window(resimg, pad, tmpl, calib: Calibration, r0, r1, c0, c1, n_tem
     pages = np.unique(np.round(np.linspace(0, K - 1, min(n_templates, K))).astype(int))
     best = (None, None, -2.0)
     Hp, Wp = resimg.shape
+    # centres inside the frame only (a matching window around them stays inside the padding)
+    r0, r1 = max(int(r0), 0), min(int(r1), Hp - 2 * pad - 1)
+    c0, c1 = max(int(c0), 0), min(int(c1), Wp - 2 * pad - 1)
     for k in pages:
         t = tmpl[k]
         T = t.shape[0]
@@ -769,33 +771,47 @@ def _split(res, pad, tmpl, calib, hit, model, cap, n_parts, m, z_points, cm_drop
     res.add(*model)
     single = dict(hit)
     sl_s, mod_s = res.model(single)
-    parts, pm = [], []
-    h1 = dict(hit)
-    pm.append(res.model(h1, cap(h1)))
-    res.subtract(*pm[0])
-    parts.append(h1)
     T = tmpl[hit["page"]].shape[0]
     r0, c0 = hit["top"] - pad, hit["left"] - pad
-    for _ in range(1, n_parts):
-        r, c, _v = _best_in_window(res.img, pad, tmpl, calib, r0, r0 + T - 1, c0, c0 + T - 1, n_templates)
-        if r is None:
+
+    def attempt(seed):
+        """Parts grown from ``seed`` (a first part), swept; returns (parts, models), models subtracted."""
+        parts, pm = [seed], [res.model(seed, cap(seed))]
+        res.subtract(*pm[0])
+        for _ in range(1, n_parts):
+            r, c, _v = _best_in_window(res.img, pad, tmpl, calib, r0, r0 + T - 1, c0, c0 + T - 1, n_templates)
+            if r is None:
+                break
+            hj = _match_one(res.img, pad, r, c, tmpl, calib, m, z_points, cm_drop, coarse)
+            pm.append(res.model(hj, cap(hj)))
+            res.subtract(*pm[-1])
+            parts.append(hj)
+        for _ in range(3):
+            for j in range(len(parts)):
+                res.add(*pm[j])
+                hj = _match_one(res.img, pad, parts[j]["y_px"], parts[j]["x_px"], tmpl, calib, m, z_points,
+                                cm_drop, coarse)
+                pm[j] = res.model(hj, cap(hj))
+                res.subtract(*pm[j])
+                parts[j] = hj
+        return parts, pm
+
+    # first from the merged match itself; then again from the second part found (the merged match sits at a
+    # compromise between the images, and the first part can stay stuck there)
+    best = None
+    seed = dict(hit)
+    for _try in range(2):
+        parts, pm = attempt(seed)
+        rss = _window_rss(res, [sl_s] + [p[0] for p in pm])
+        for p in pm:
+            res.add(*p)
+        if best is None or rss < best[0]:
+            best = (rss, parts, pm)
+        if len(parts) < 2:
             break
-        hj = _match_one(res.img, pad, r, c, tmpl, calib, m, z_points, cm_drop, coarse)
-        pm.append(res.model(hj, cap(hj)))
-        res.subtract(*pm[-1])
-        parts.append(hj)
-    for _ in range(3):
-        for j in range(len(parts)):
-            res.add(*pm[j])
-            hj = _match_one(res.img, pad, parts[j]["y_px"], parts[j]["x_px"], tmpl, calib, m, z_points,
-                            cm_drop, coarse)
-            pm[j] = res.model(hj, cap(hj))
-            res.subtract(*pm[j])
-            parts[j] = hj
+        seed = dict(parts[1])
+    rss_n, parts, pm = best
     union = [sl_s] + [p[0] for p in pm]
-    rss_n = _window_rss(res, union)
-    for p in pm:
-        res.add(*p)
     res.subtract(sl_s, mod_s)
     rss_1 = _window_rss(res, union)
     res.add(sl_s, mod_s)
@@ -827,7 +843,7 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
               cm_drop: float = 0.15, snr_fit: float = 40.0, snr_rel: float = 0.15,
               min_mass: float = 0.5, max_mass: float | None = 1.8, coarse: int = 4,
               amp_cap: float | None = 1.15, split_at: float | None = 1.6, split_gain: float = 100.0,
-              split_chi2: float = 3.0) -> pd.DataFrame:
+              split_chi2: float = 3.0, max_chi2: float | None = None) -> pd.DataFrame:
     """Detect defocused particles in a background-subtracted frame and measure x, y, z, Cm.
 
     Built for realistic (crowded) frames, where defocused images overlap and
@@ -897,7 +913,7 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
         if small.size:
             signal[np.isin(labels, small)] = 0
     if not signal.any():
-        return pd.DataFrame({k: [] for k in ("x_px", "y_px", "z", "cm", "page", "mass", "edge")})
+        return pd.DataFrame({k: [] for k in ("x_px", "y_px", "z", "cm", "page", "snr", "mass", "chi2", "edge")})
     # a ring's dark centre is still a candidate: grow the signal mask by the largest image radius
     rad = max(3, int(0.5 * max(t.shape[0] for t in calib.templates) * 0.6))
     mask = cv2.dilate(signal, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))) > 0
@@ -964,17 +980,14 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
                 h = hits[i]
                 if h.get("split_tried"):
                     continue
+                sl_ = models[i][0]
+                chi2 = _window_rss(res, [sl_]) / max(int(res.inside[sl_].sum()), 1) / res.noise ** 2
                 if ref[0] > 0:
-                    if h[bkey] < split_at * ref[0]:
+                    if h[bkey] < split_at * ref[0] and chi2 < split_chi2:
                         continue
                     n_parts = int(min(3, max(2, round(h[bkey] / ref[0]))))
                     part_cap = cap
                 else:
-                    sl_ = models[i][0]
-                    ins = res.inside[sl_]
-                    chi2 = _window_rss(res, [sl_]) / max(int(ins.sum()), 1) / res.noise ** 2
-                    if _DEBUG:
-                        print("chi2", h["x_px"], h["y_px"], h["z"], chi2)
                     if chi2 < split_chi2:
                         continue
                     n_parts = 2
@@ -1000,8 +1013,6 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
                 hits.extend(parts[1:])
                 new += len(parts) - 1
                 models.extend(pm[1:])
-        if _DEBUG:
-            print("round", rnd, "after accept/split:", [(round(h["x_px"], 1), round(h["y_px"], 1), round(h["z"] * 1e6, 2), round(h["cm"], 3), round(h[bkey] / ref[0], 2) if ref[0] else round(h[bkey])) for h in hits])
         if new == 0 and rnd > 0:
             break
         # which hits changed since their neighbours were last matched: new ones (no "settled" key) and those
@@ -1039,21 +1050,26 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
                 h["settled"] = not dropped and id(h) not in moved
             if not moved and not dropped:
                 break
-        if _DEBUG:
-            print("round", rnd, "after refine:", [(round(h["x_px"], 1), round(h["y_px"], 1), round(h["z"] * 1e6, 2), round(h["cm"], 3)) for h in hits])
         if new == 0:
             break
     # the leftovers of an imperfectly subtracted neighbour can correlate well (Cm is blind to amplitude) but
     # carry a fraction of a particle's light: drop images much fainter than the frame's typical particle
     mass_ref = float(np.median([h[bkey] for h in hits])) if len(hits) >= 3 else 0.0
-    out = {k: [] for k in ("x_px", "y_px", "z", "cm", "page", "snr", "mass", "edge")}
+    out = {k: [] for k in ("x_px", "y_px", "z", "cm", "page", "snr", "mass", "chi2", "edge")}
     for h, (sl, mod) in zip(hits, models):
         if (h["cm"] < cm_min or h["snr"] < snr_fit or h[bkey] < min_mass * mass_ref
                 or (max_mass and mass_ref > 0 and h[bkey] > max_mass * mass_ref)):
             continue
+        # what the models of all particles leave unexplained in this one's window, per pixel, in units of the
+        # (smoothed) noise variance: ~1 for a well-explained image; high for an image matched at a compromise
+        # between two overlapping particles (Cm alone cannot tell)
+        chi2 = _window_rss(res, [sl]) / max(int(res.inside[sl].sum()), 1) / res.noise ** 2
+        if max_chi2 is not None and chi2 > max_chi2:
+            continue
         for key in ("x_px", "y_px", "z", "cm", "page", "snr"):
             out[key].append(h[key])
         out["mass"].append(h["mass"])
+        out["chi2"].append(chi2)
         T = tmpl[h["page"]].shape[0]
         out["edge"].append(bool(h["top"] < pad or h["left"] < pad or h["top"] + T > pad + H or h["left"] + T > pad + W))
     return pd.DataFrame(out)

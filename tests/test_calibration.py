@@ -262,3 +262,37 @@ def test_brightfield_movie_several_defocus_values(bf_calib):
         assert sorted(near) == list(range(len(xs))) and d.min(1).max() < 0.6, df
         dz = np.abs(df["z"].to_numpy() - zs[near])
         assert np.all(dz < bounds[near]), (dz * 1e9, bounds[near] * 1e9)
+
+
+@pytest.mark.parametrize("sep_um,z1,z2,angle", [(0.6, -1.2e-6, 1.0e-6, 0.0), (0.8, 0.5e-6, -1.5e-6, 0.9),
+                                                (1.0, 1.5e-6, -0.3e-6, 2.0), (0.7, -1.6e-6, -0.4e-6, 4.0)])
+def test_close_pair_at_different_heights(calib, sep_um, z1, z2, angle):
+    """Two particles 0.6-1 um apart (6-10 px; their defocused images overlap almost entirely) at different z,
+    in a frame with two more particles (as in any movie frame: they give the typical brightness): both are
+    found, each at its own x, y and z, not one merged match at a compromise height. Measured over 8 frames of
+    these four pairs: 31 of 32 frames right (the miss: a compact image with an elongated one 0.8 um away,
+    matched as one, flagged by its residual chi2); here at least 3 of 4 frames per pair, and no wrong z
+    reported without a high chi2."""
+    from ptrack.table import make_table
+
+    cam = render.Camera(photons=4000.0, background=15.0)
+    sep = sep_um * 1e-6 / PX
+    xs = np.array([60.3, 60.3 + sep * np.cos(angle), 20.0, 100.0])
+    ys = np.array([55.6, 55.6 + sep * np.sin(angle), 20.0, 20.0])
+    zs = np.array([z1, z2, 0.2e-6, -0.7e-6])
+    n_f = 4
+    fr = np.repeat(np.arange(n_f), len(xs))
+    p = np.tile(np.arange(len(xs)), n_f)
+    table = make_table(fr, fr * 0.1, p, xs[p] * PX, ys[p] * PX, zs[p], meta={"frame_interval": 0.1})
+    good = 0
+    for frame in render.render_frames(table, shape=(110, 130), optics=OPTICS, camera=cam, seed=int(sep_um * 100)):
+        df = locate_3d(prepare(frame, bg_size=3 * calib.size), calib)
+        d = np.hypot(df["x_px"].to_numpy()[:, None] - xs, df["y_px"].to_numpy()[:, None] - ys)
+        near = d.argmin(1)
+        dz = np.abs(df["z"].to_numpy() - zs[near])
+        # whatever is reported sits on a particle (within 1.5 px = 150 nm) at its z (5 % of the 4 um depth),
+        # or its window is left badly explained (chi2 > 4: the frame's models miss light there) and says so
+        ok = (d.min(1) < 1.5) & (dz < 0.2e-6)
+        assert np.all(ok | (df["chi2"].to_numpy() > 4)), (df, zs)
+        good += len(df) == len(xs) and sorted(near) == list(range(len(xs)))
+    assert good >= 3, good

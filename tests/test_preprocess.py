@@ -90,3 +90,28 @@ def test_brightfield_needs_and_gets_inversion():
     r_plain, _ = recall(locate(frame, sigma=1.4, gain=cam.gain, offset=cam.offset))
     assert r_bf >= 0.95 and false_bf == 0
     assert r_plain < 0.2
+
+
+def test_signed_background_keeps_both_lobes_of_brightfield_rings():
+    """Defocused brightfield rings (a dark ring with a bright centre) on a sloping field: the signed (running
+    median) background follows the field and leaves both lobes of every ring, with their sign, nothing
+    thresholded."""
+    rng = np.random.default_rng(5)
+    shape = (160, 200)
+    rr, cc = np.indices(shape)
+    field = 1000 + 0.5 * cc + 0.2 * rr
+    ring = np.zeros(shape)
+    centres = [(40, 40), (100, 50), (160, 45), (70, 115), (130, 120)]
+    for x, y in centres:
+        d = np.hypot(cc - x, rr - y)
+        ring += -120 * np.exp(-((d - 9) ** 2) / 8.0) + 80 * np.exp(-(d ** 2) / 8.0)
+    raw = field + ring + rng.normal(0, 5, shape)
+    far = np.ones(shape, bool)
+    for x, y in centres:
+        far &= np.hypot(cc - x, rr - y) > 16
+    for size in (40, 60, 100):
+        img = prepare(raw, brightfield=True, bg_size=size, max_value=2000.0, signed=True)
+        err = img + ring          # inverted: the dark ring positive, the bright centre negative
+        assert abs(np.median(err[far])) < 2.0 and np.std(err[far]) < 7.0, size    # noise sigma 5
+        assert np.abs(err[~far]).mean() < 5.0, size
+        assert img[~far].min() < -50 and img[~far].max() > 80                      # both signs kept
