@@ -976,12 +976,16 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
             # Tried for matches brighter than split_at x the frame's typical particle or, in frames too sparse
             # to know it, whose window is left with a residual chi^2 per pixel above split_chi2
             n0 = len(hits)
+            chis = [_window_rss(res, [mo[0]]) / max(int(res.inside[mo[0]].sum()), 1) / res.noise ** 2
+                    for mo in models]
+            # very bright images are never explained to the noise level (the templates are images too): chi2
+            # relative to the frame's typical one when there are enough particles to tell
+            chi_ref = max(1.0, float(np.median(chis))) if len(chis) >= 3 else 1.0
             for i in range(n0):
                 h = hits[i]
                 if h.get("split_tried"):
                     continue
-                sl_ = models[i][0]
-                chi2 = _window_rss(res, [sl_]) / max(int(res.inside[sl_].sum()), 1) / res.noise ** 2
+                chi2 = chis[i] / chi_ref
                 if ref[0] > 0:
                     if h[bkey] < split_at * ref[0] and chi2 < split_chi2:
                         continue
