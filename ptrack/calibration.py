@@ -32,6 +32,7 @@ import pandas as pd
 
 from .errors import UserError, check_positive, require_file
 
+_REFINE_SCALE = 1 / 1.2    # refine only particles whose 95 % light discs overlap (see build_calibration)
 __all__ = ["Calibration", "read_calib_z", "build_calibration", "load_calibration", "prepare_gdpt", "check_pixel_size",
            "detect_blobs", "match_templates", "locate_3d"]
 
@@ -756,17 +757,22 @@ def _window_rss(res, slices):
     return float((w[res.inside[r0:r1, c0:c1]] ** 2).sum())
 
 
-def _split(res, pad, tmpl, calib, hit, model, cap, n_parts, m, z_points, cm_drop, coarse, n_templates, gain):
-    """Fit one (over-bright) match as ``n_parts`` particles of capped brightness.
+def _split(res, pad, tmpl, calib, hit, model, cap, n_parts, m, z_points, cm_drop, coarse, n_templates, gain,
+           part_ok):
+    """Fit one (over-bright or badly explained) match as ``n_parts`` particles of capped brightness.
 
     The match's model is taken out of the residual; the first part starts at
     the match, each further one at the best representative-template
     correlation inside the match's window on what is left; then each part is
-    re-matched with the others subtracted (3 sweeps). Kept (models subtracted,
-    returned) when the residual sum of squares over the window drops by more
-    than ``gain`` noise variances against the single match with a free
-    amplitude; otherwise the residual is left as it was and (None, None) is
-    returned.
+    re-matched with the others subtracted (3 sweeps). Accepted (models
+    subtracted, returned) when the residual sum of squares over the window
+    drops by more than ``gain`` noise variances against the single match with
+    a free amplitude, the parts are more than 1 px apart and each passes
+    ``part_ok``. A second attempt starts from the second part found (the
+    merged match sits at a compromise between the images, and the first part
+    can stay stuck there); of the accepted attempts the one with the lower
+    residual is kept. If neither is accepted the residual is left as it was
+    and (None, None) is returned.
     """
     res.add(*model)
     single = dict(hit)
@@ -796,43 +802,45 @@ def _split(res, pad, tmpl, calib, hit, model, cap, n_parts, m, z_points, cm_drop
                 parts[j] = hj
         return parts, pm
 
-    # first from the merged match itself; then again from the second part found (the merged match sits at a
-    # compromise between the images, and the first part can stay stuck there)
-    best = None
     seed = dict(hit)
+    best = None
     for _try in range(2):
         parts, pm = attempt(seed)
-        rss = _window_rss(res, [sl_s] + [p[0] for p in pm])
+        union = [sl_s] + [p[0] for p in pm]
+        rss_n = _window_rss(res, union)
         for p in pm:
             res.add(*p)
-        if best is None or rss < best[0]:
-            best = (rss, parts, pm)
+        res.subtract(sl_s, mod_s)
+        rss_1 = _window_rss(res, union)
+        res.add(sl_s, mod_s)
+        close = any(math.hypot(a["x_px"] - b["x_px"], a["y_px"] - b["y_px"]) < 1.0
+                    for i, a in enumerate(parts) for b in parts[i + 1:])
+        if (len(parts) >= 2 and not close and rss_1 - rss_n >= gain * res.noise ** 2 and all(map(part_ok, parts))
+                and (best is None or rss_n < best[0])):
+            best = (rss_n, parts, pm)
         if len(parts) < 2:
             break
         seed = dict(parts[1])
-    rss_n, parts, pm = best
-    union = [sl_s] + [p[0] for p in pm]
-    res.subtract(sl_s, mod_s)
-    rss_1 = _window_rss(res, union)
-    res.add(sl_s, mod_s)
-    close = any(math.hypot(a["x_px"] - b["x_px"], a["y_px"] - b["y_px"]) < 1.0
-                for i, a in enumerate(parts) for b in parts[i + 1:])
-    if len(parts) < 2 or close or rss_1 - rss_n < gain * res.noise ** 2:
+    if best is None:
         res.subtract(*model)
         return None, None
-    for p in pm:
+    for p in best[2]:
         res.subtract(*p)
-    return parts, pm
+    return best[1], best[2]
 
 
-def _overlap_snr(hit, hits, tmpl) -> float:
-    """Largest amplitude SNR of the accepted particles whose template windows overlap ``hit``'s (0 if none)."""
+def _overlap_snr(hit, hits, tmpl, scale: float = 1.0) -> float:
+    """Largest amplitude SNR of the accepted particles whose template windows overlap ``hit``'s (0 if none).
+
+    ``scale`` < 1 shrinks both windows about their centres first (1/1.2: the
+    discs holding 95 % of the light, see :func:`build_calibration`).
+    """
     best = 0.0
     T = tmpl[hit["page"]].shape[0]
     for h in hits:
         Th = tmpl[h["page"]].shape[0]
-        if (abs(h["top"] + Th / 2 - hit["top"] - T / 2) < (T + Th) / 2
-                and abs(h["left"] + Th / 2 - hit["left"] - T / 2) < (T + Th) / 2):
+        if (abs(h["top"] + Th / 2 - hit["top"] - T / 2) < scale * (T + Th) / 2
+                and abs(h["left"] + Th / 2 - hit["left"] - T / 2) < scale * (T + Th) / 2):
             best = max(best, h["snr"])
     return best
 
@@ -1027,16 +1035,14 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
                     def part_cap(p, b_part=b_part):
                         return amp_cap * b_part / per_amp[p["page"]]
                 h["split_tried"] = True
-                parts, pm = _split(res, pad, tmpl, calib, h, models[i], part_cap, n_parts, m, z_points, cm_drop,
-                                   coarse, n_templates, split_gain)
-                if parts is None:
-                    continue
                 b_min = min_mass * (ref[0] if ref[0] > 0 else h[bkey] / n_parts)
-                ok = all(p["cm"] >= cm_min and p["snr"] >= snr_fit and p[bkey] >= b_min for p in parts)
-                if not ok:
-                    for sl_, mod_ in pm:
-                        res.add(sl_, mod_)
-                    res.subtract(*models[i])
+
+                def part_ok(p, b_min=b_min):
+                    return p["cm"] >= cm_min and p["snr"] >= snr_fit and p[bkey] >= b_min
+
+                parts, pm = _split(res, pad, tmpl, calib, h, models[i], part_cap, n_parts, m, z_points, cm_drop,
+                                   coarse, n_templates, split_gain, part_ok)
+                if parts is None:
                     continue
                 for p_ in parts:
                     p_["split_tried"] = True        # no split of a split: two halves of one elongated image
@@ -1052,12 +1058,13 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
             alive, moved, dropped = [], set(), False
             for i, h in enumerate(hits):
                 others = hits[:i] + hits[i + 1:]
-                if _overlap_snr(h, others, tmpl) == 0:
+                if _overlap_snr(h, others, tmpl, _REFINE_SCALE) == 0:
                     alive.append(i)         # alone: its first match saw no neighbour, nothing to refine
                     h["settled"] = True
                     continue
                 if h.get("settled") and not any(not o.get("settled") or id(o) in moved
-                                                for o in others if _overlap_snr(h, [dict(o, snr=1.0)], tmpl) > 0):
+                                                for o in others
+                                                if _overlap_snr(h, [dict(o, snr=1.0)], tmpl, _REFINE_SCALE) > 0):
                     alive.append(i)         # its neighbourhood did not change since its last re-match
                     continue
                 res.add(*models[i])
