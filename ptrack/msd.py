@@ -237,46 +237,88 @@ def _msd_sums_ragged(vals, off, max_lag):
 
 
 @njit(cache=True)
-def _msd_sums_multi(vals, off, max_lag):
+def _msd_sums_multi(vals, off, max_lag, fov, flen):
     """Per-component sums of squared displacements (n_p, max_lag, k) and counts (n_p, max_lag).
 
-    A displacement counts where every component is finite at both ends.
+    A displacement counts where every component is finite at both ends. With
+    a field of view (``fov``: the limited coordinates, ``flen``: their
+    extents; empty for none) each displacement is weighted by
+    :func:`_fov_weight` of the range the track covered from start to end.
     """
     n_p = off.shape[0] - 1
     k_c = vals.shape[0]
+    n_f = fov.shape[0]
     sums = np.zeros((n_p, max_lag, k_c))
     cnts = np.zeros((n_p, max_lag))
-    acc = np.zeros(k_c)
+    mn = np.empty(n_f)
+    mx = np.empty(n_f)
     for p in range(n_p):
         a = off[p]
         b = off[p + 1]
-        span = b - a
-        for lag in range(1, min(max_lag, span - 1) + 1):
-            acc[:] = 0.0
-            c = 0.0
-            for i in range(a, b - lag):
+        # start-major order: for each lag the displacements still arrive with increasing start
+        for i in range(a, b - 1):
+            ok0 = True
+            for k in range(k_c):
+                if vals[k, i] != vals[k, i]:
+                    ok0 = False
+            if not ok0:
+                continue
+            for f in range(n_f):
+                mn[f] = fov[f, i]
+                mx[f] = fov[f, i]
+            for lag in range(1, min(max_lag, b - 1 - i) + 1):
+                j = i + lag
+                for f in range(n_f):
+                    v = fov[f, j]
+                    if v == v:
+                        if v < mn[f]:
+                            mn[f] = v
+                        if v > mx[f]:
+                            mx[f] = v
                 ok = True
                 for k in range(k_c):
-                    d = vals[k, i + lag] - vals[k, i]
-                    if d != d:
+                    if vals[k, j] != vals[k, j]:
                         ok = False
                         break
-                if ok:
-                    for k in range(k_c):
-                        d = vals[k, i + lag] - vals[k, i]
-                        acc[k] += d * d
-                    c += 1.0
-            for k in range(k_c):
-                sums[p, lag - 1, k] = acc[k]
-            cnts[p, lag - 1] = c
+                if not ok:
+                    continue
+                w = 1.0
+                for f in range(n_f):
+                    w *= _fov_weight(mx[f] - mn[f], flen[f])
+                for k in range(k_c):
+                    d = vals[k, j] - vals[k, i]
+                    sums[p, lag - 1, k] += w * d * d
+                cnts[p, lag - 1] += w
     return sums, cnts
 
 
+@njit(cache=True, inline="always")
+def _fov_weight(extent, length):
+    """Inverse probability that a path segment of this extent lies inside a field of this length.
+
+    For particles spread uniformly over the field, a segment spanning
+    ``extent`` along an axis is seen whole (and so linked and counted) for a
+    fraction ``1 - extent/length`` of its possible positions: long steps are
+    lost at the edges more often than short ones, which biases the MSD low
+    by about ``1.6 s / L`` (s the step standard deviation). Weighting each
+    displacement by the inverse (Horvitz-Thompson) removes that bias. Clamped
+    at 10 for segments nearly as long as the field.
+    """
+    q = 1.0 - extent / length
+    return 1.0 / q if q > 0.1 else 10.0
+
+
 @njit(cache=True)
-def _cve_sums_ragged(vals, off):
-    """Per particle and component: sum dx^2, n(dx), sum dx_n dx_n+1, n(pairs)."""
+def _cve_sums_ragged(vals, off, fov, flen):
+    """Per particle and component: sum w dx^2, sum w, sum w' dx_n dx_n+1, sum w'.
+
+    Unit weights without a field of view (``fov`` with no rows); else w is
+    :func:`_fov_weight` of the extent of the step and w' of the three
+    positions of the pair of steps.
+    """
     n_p = off.shape[0] - 1
     k_c = vals.shape[0]
+    n_f = fov.shape[0]
     out = np.zeros((n_p, k_c, 4))
     for p in range(n_p):
         a = off[p]
@@ -290,11 +332,20 @@ def _cve_sums_ragged(vals, off):
             for i in range(a, b - 1):
                 d = vals[k, i + 1] - vals[k, i]
                 if d == d:
-                    s2 += d * d
-                    n2 += 1.0
+                    w1 = 1.0
+                    for f in range(n_f):
+                        w1 *= _fov_weight(abs(fov[f, i + 1] - fov[f, i]), flen[f])
+                    s2 += w1 * d * d
+                    n2 += w1
                     if prev == prev:
-                        s11 += d * prev
-                        n11 += 1.0
+                        w2 = 1.0
+                        for f in range(n_f):
+                            u0 = fov[f, i - 1]
+                            u1 = fov[f, i]
+                            u2 = fov[f, i + 1]
+                            w2 *= _fov_weight(max(u0, max(u1, u2)) - min(u0, min(u1, u2)), flen[f])
+                        s11 += w2 * d * prev
+                        n11 += w2
                 prev = d
             out[p, k, 0] = s2
             out[p, k, 1] = n2
@@ -464,6 +515,49 @@ def _components(axes) -> tuple:
 # drift
 # ---------------------------------------------------------------------------
 
+def _resolve_fov(df: pd.DataFrame, field_of_view) -> dict:
+    """Field of view as ``{component: extent (m)}``; empty for none.
+
+    ``field_of_view``: None (no correction), ``"auto"`` (the image: the
+    range of the positions in x and y), a sequence of component names (their
+    ranges, e.g. ``("x", "y", "z")`` when z is limited by the calibrated
+    range and particles leave it), or a dict component -> extent (m) or
+    (lo, hi).
+    """
+    if field_of_view is None:
+        return {}
+    if isinstance(field_of_view, str) and field_of_view != "auto":
+        raise UserError(f"field_of_view = {field_of_view!r}", "give None, 'auto', component names or a dict component -> extent in m")
+    if isinstance(field_of_view, str) or (isinstance(field_of_view, (tuple, list))
+                                          and all(isinstance(c, str) for c in field_of_view)):
+        names = ("x", "y") if isinstance(field_of_view, str) else tuple(field_of_view)
+        out = {}
+        for c in names:
+            if c not in ("x", "y", "z") or c not in df.columns:
+                raise UserError(f"field_of_view names {c!r}, not a position column of the table", "use x, y or z")
+            v = df[c].to_numpy(dtype=float)
+            v = v[np.isfinite(v)]
+            if v.size and v.max() > v.min():
+                out[c] = float(v.max() - v.min())
+        return out
+    out = {}
+    for c, v in dict(field_of_view).items():
+        if c not in ("x", "y", "z"):
+            raise UserError(f"field_of_view has component {c!r}", "use x, y or z")
+        ext = float(v[1]) - float(v[0]) if isinstance(v, (tuple, list, np.ndarray)) else float(v)
+        if not (math.isfinite(ext) and ext > 0):
+            raise UserError(f"field_of_view[{c!r}] = {v!r} is not a positive extent", "give the field's size in m")
+        out[c] = ext
+    return out
+
+
+def _fov_arrays(tr: _Tracks, fov: dict):
+    """(limited coordinates (n_f, total), their extents (n_f,)) for the numba kernels."""
+    if not fov:
+        return np.empty((0, tr.off[-1])), np.empty(0)
+    return tr.stack(list(fov)), np.array(list(fov.values()), dtype=float)
+
+
 def _step_drift(tr: _Tracks, comps):
     """Mean displacement per frame step f -> f+1 and the number M of particles in it."""
     if len(tr.first) == 0:
@@ -613,35 +707,38 @@ def _default_max_lag(tr: _Tracks, max_lag):
     return max(1, min(max_lag, longest))
 
 
-def _msd_sums(tr: _Tracks, axes, max_lag):
-    """axis -> (sums (n_p, L), counts (n_p, L)).
+def _msd_sums(tr: _Tracks, axes, max_lag, fov=None):
+    """axis -> (sums (n_p, L), counts (n_p, L)), weighted for the field of view ``fov`` (:func:`_fov_arrays`).
 
     One pass over all components when they share their missing values (the
     usual case: a row has x and y, and z if any); else one pass per axis.
     """
     comps = _components(axes)
+    fv, fl = fov if fov is not None else _fov_arrays(tr, {})
     nan0 = np.isnan(tr.comps[comps[0]])
     if all(np.array_equal(nan0, np.isnan(tr.comps[c])) for c in comps[1:]):
-        sums, cnts = _msd_sums_multi(tr.stack(comps), tr.off, int(max_lag))
+        sums, cnts = _msd_sums_multi(tr.stack(comps), tr.off, int(max_lag), fv, fl)
         ci = {c: i for i, c in enumerate(comps)}
         return {a: (sums[:, :, [ci[c] for c in AXES[a]]].sum(axis=2), cnts) for a in axes}
     res = {}
     for a in axes:
-        vals = tr.stack(AXES[a])
-        res[a] = _msd_sums_ragged(vals, tr.off, int(max_lag))
+        sums, cnts = _msd_sums_multi(tr.stack(AXES[a]), tr.off, int(max_lag), fv, fl)
+        res[a] = (sums.sum(axis=2), cnts)
     return res
 
 
-def _lag_sums(df: pd.DataFrame, axes, max_lag):
+def _lag_sums(df: pd.DataFrame, axes, max_lag, field_of_view=None):
     """Parse ``axes``, prepare the tracks, resolve ``max_lag`` and sum the squared displacements.
 
     Returns (axes, tracks, L, {axis: (sums (n_p, L), counts (n_p, L))}): the common start of
     :func:`particle_msd` and :func:`ensemble_msd`.
     """
     axes = _parse_axes(axes)
-    tr = _prepare(df, _components(axes))
+    fov = _resolve_fov(df, field_of_view)
+    comps = _components(axes)
+    tr = _prepare(df, tuple(dict.fromkeys(comps + tuple(fov))))
     L = _default_max_lag(tr, max_lag)
-    return axes, tr, L, _msd_sums(tr, axes, L)
+    return axes, tr, L, _msd_sums(tr, axes, L, _fov_arrays(tr, fov))
 
 
 def particle_msd(df: pd.DataFrame, axes=("x", "y", "xy"), max_lag=None) -> pd.DataFrame:
@@ -699,7 +796,7 @@ def _ensemble_from_sums(sums, axes, dt, L):
     return pd.DataFrame(out)
 
 
-def ensemble_msd(df: pd.DataFrame, axes=("x", "y", "xy"), max_lag=None) -> pd.DataFrame:
+def ensemble_msd(df: pd.DataFrame, axes=("x", "y", "xy"), max_lag=None, field_of_view=None) -> pd.DataFrame:
     """Ensemble MSD: average over all particles and all start times.
 
     Each displacement counts once (a long track weighs more than a short one).
@@ -713,6 +810,9 @@ def ensemble_msd(df: pd.DataFrame, axes=("x", "y", "xy"), max_lag=None) -> pd.Da
         Any of ``x, y, z, xy, xz, yz, xyz``.
     max_lag : int, optional
         Longest lag in frames (default: min(100, longest track - 1)).
+    field_of_view : None, "auto" or dict
+        Correct the loss of long displacements at the edges of the field
+        (see :func:`estimate_diffusion`).
 
     Returns
     -------
@@ -721,7 +821,7 @@ def ensemble_msd(df: pd.DataFrame, axes=("x", "y", "xy"), max_lag=None) -> pd.Da
         ``n_<axis>`` (number of displacements), ``se_<axis>`` (m^2, standard
         error over whole particles; NaN with fewer than 2 particles).
     """
-    axes, tr, L, sums = _lag_sums(df, axes, max_lag)
+    axes, tr, L, sums = _lag_sums(df, axes, max_lag, field_of_view)
     res = _ensemble_from_sums(sums, axes, tr.dt, L)
     res.attrs["frame_interval"] = tr.dt
     return res
@@ -1097,7 +1197,8 @@ def _boot_weights(n_p, n_boot, rng):
 
 
 def estimate_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), estimator: str = "cve", motion_blur: float = 1 / 6,
-                       n_boot: int = 200, seed=0, subtract_drift: bool = False, max_lag=None) -> DiffusionResult:
+                       n_boot: int = 200, seed=0, subtract_drift: bool = False, max_lag=None,
+                       field_of_view=None) -> DiffusionResult:
     """Diffusion coefficient per axis with standard errors.
 
     Parameters
@@ -1124,6 +1225,19 @@ def estimate_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), estimator: str =
         bias correction.
     max_lag : int, optional
         Longest lag of the stored MSD table (frames).
+    field_of_view : None, "auto", component names, or dict component -> extent (m) or (lo, hi)
+        The region in which particles can be seen (the image, and in 3D the
+        calibrated z range if particles leave it). A particle is tracked only while it stays
+        inside, so long displacements near the edges are lost more often
+        than short ones and the measured MSD is biased low by about
+        ``1.6 s / L`` per limited axis (s the step standard deviation, L the
+        extent: -3.4 % for 4 px steps in a 192 px field). With the field
+        given, every displacement is weighted by the inverse probability
+        that a segment of its extent fits in the field (uniformly spread
+        particles), which removes the bias. ``"auto"`` takes the range of the
+        positions in x and y (the image); names such as ``("x", "y", "z")``
+        take the range of those components. None: no correction
+        (simulations without a field).
 
     Returns
     -------
@@ -1141,13 +1255,15 @@ def estimate_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), estimator: str =
         raise UserError(f"n_boot = {n_boot} is negative", "give 0 or a positive number of resamples")
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     comps = _components(axes)
-    tr = _prepare(df, comps, min_rows=3)
+    fov = _resolve_fov(df, field_of_view)
+    tr = _prepare(df, tuple(dict.fromkeys(comps + tuple(fov))), min_rows=3)
+    fv, fl = _fov_arrays(tr, fov)               # positions in the field: before any drift correction
     if subtract_drift:
         tr = _drift_corrected(tr, comps)
     dt = tr.dt
     n_p = len(tr.particles)
     L = _default_max_lag(tr, max_lag)
-    cs = _cve_sums_ragged(tr.stack(comps), tr.off)            # (n_p, k, 4)
+    cs = _cve_sums_ragged(tr.stack(comps), tr.off, fv, fl)            # (n_p, k, 4)
     ci = {c: i for i, c in enumerate(comps)}
     if np.any(cs[:, :, 3].sum(axis=0) == 0):
         raise UserError("no track has three consecutive frames", "give tracks with at least 3 consecutive positions")
@@ -1165,7 +1281,7 @@ def estimate_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), estimator: str =
         v_p = cve_variance(abs(D), max(s2, 0.0), dt, np.maximum(N2, 1), R)
         comp_var[c] = float(np.sum(np.where(N2 > 0, N2**2 * v_p, 0.0)) / N2.sum() ** 2)
 
-    sums = _msd_sums(tr, axes, L)
+    sums = _msd_sums(tr, axes, L, (fv, fl))
     msd_table = _ensemble_from_sums(sums, axes, dt, L)
     res = dict(D={}, D_err={}, D_err_model={}, D_err_boot={}, sigma_loc={}, n_lags={}, fit={})
     for a in axes:
@@ -1255,7 +1371,7 @@ def particle_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), motion_blur: flo
     tr = _prepare(df, comps, min_rows=3)
     if subtract_drift:
         tr = _drift_corrected(tr, comps)
-    cs = _cve_sums_ragged(tr.stack(comps), tr.off)
+    cs = _cve_sums_ragged(tr.stack(comps), tr.off, *_fov_arrays(tr, {}))
     ci = {c: i for i, c in enumerate(comps)}
     out = {"particle": tr.particles, "n_frames": tr.n_rows.astype(np.int64)}
     Dc, vc, sc = {}, {}, {}
@@ -1340,7 +1456,7 @@ def powerlaw_flags(df: pd.DataFrame, axes="xy", level: float = 0.01, min_frames:
     if subtract_drift:
         tr = _drift_corrected(tr, cc)
     dt = tr.dt
-    cs = _cve_sums_ragged(tr.stack(cc), tr.off)
+    cs = _cve_sums_ragged(tr.stack(cc), tr.off, *_fov_arrays(tr, {}))
     tot = cs.sum(axis=0)                                   # (k, 4)
     m2 = tot[:, 0] / tot[:, 1]
     m11 = tot[:, 2] / np.maximum(tot[:, 3], 1)
@@ -1503,3 +1619,471 @@ def plot_msd(result, path, title: str | None = None):
         fig.savefig(fh, format="png")
     plt.close(fig)
     return path
+
+
+# ---------------------------------------------------------------------------
+# linking-free D: the self part of the displacement distribution of all pairs
+# ---------------------------------------------------------------------------
+
+@dataclass
+class PairDiffusionResult:
+    """Linking-free diffusion coefficients (all SI), from :func:`pair_diffusion`.
+
+    Attributes
+    ----------
+    D, D_err : dict axis -> float
+        D (m^2/s) and its jackknife standard error (over blocks of frames).
+    sigma_loc : dict axis -> float
+        Localisation error (m per component) from the offset of the
+        displacement variance against lag, with the motion-blur term removed.
+    drift_velocity : dict component -> float
+        Common drift (m/s): the mean displacement per lag, fitted through the origin.
+    lags : DataFrame
+        One row per lag: ``lag`` (frames), ``s2_<c>`` and ``s2_<c>_err``
+        (variance of the one-particle displacement along component c, m^2),
+        ``mu_<c>``, ``mu_<c>_err`` (mean, m), ``window_<c>`` (cut-off, m),
+        ``alpha`` (fraction of particles found again), ``unmatched_density``
+        (particles not explained by any of the previous frame, per m^d),
+        ``n_targets``, ``n_pairs``.
+    window : dict component -> float
+        Cut-off at lag 1 (m); every lag's is in ``lags``.
+    link_ambiguity : float
+        Expected fraction of frame-to-frame steps for which another particle
+        lies closer to a particle's old position than the particle itself
+        (from the measured density and D): when this is more than a few
+        percent, D from linked tracks is biased low and this estimate is the
+        one to use.
+    frame_interval, motion_blur : float
+    n_blocks : int
+        Jackknife blocks.
+    """
+
+    D: dict
+    D_err: dict
+    sigma_loc: dict
+    drift_velocity: dict
+    lags: pd.DataFrame
+    window: dict
+    link_ambiguity: float
+    frame_interval: float
+    motion_blur: float
+    n_blocks: int
+
+
+class _LagPairs:
+    """Everything one lag's likelihood needs, positions scaled by the cut-off ``c`` (per component).
+
+    ``u``: displacement target - source of every (target, source) pair closer
+    than the cut-off along every axis; ``tgt``: the pair's target index;
+    ``n_tgt``: targets (inside the inner box); ``src``: every source position
+    relative to its frame's inner box (lo, hi per source, scaled);
+    ``area``: total inner-box area over the frame pairs (scaled);
+    ``tgt_frame``, ``src_frame``, ``pair_frame``: source frame of each, for the jackknife.
+    """
+
+    def __init__(self, u, tgt, n_tgt, src_lo, src_hi, area_per_frame, tgt_frame, src_frame):
+        self.u, self.tgt, self.n_tgt = u, tgt, n_tgt
+        self.src_lo, self.src_hi = src_lo, src_hi
+        self.area_per_frame = area_per_frame
+        self.tgt_frame, self.src_frame = tgt_frame, src_frame
+        self.n_frames = len(np.unique(tgt_frame)) if len(tgt_frame) else 0
+        self.log_rho0 = math.log(0.01 * max(n_tgt, 1) / max(area_per_frame * max(self.n_frames, 1), 1e-300))
+
+    def subset(self, keep_frame):
+        """The same lag without the frame pairs whose source frame fails ``keep_frame`` (a function of frames)."""
+        kt = keep_frame(self.tgt_frame)
+        new_idx = np.cumsum(kt) - 1
+        kp = kt[self.tgt]
+        ks = keep_frame(self.src_frame)
+        out = _LagPairs(self.u[kp], new_idx[self.tgt[kp]], int(kt.sum()), self.src_lo[ks], self.src_hi[ks],
+                        self.area_per_frame, self.tgt_frame[kt], self.src_frame[ks])
+        out.n_frames = len(np.unique(self.src_frame[ks]))
+        out.log_rho0 = self.log_rho0
+        return out
+
+
+def _pair_nll(theta, lp: _LagPairs):
+    """Negative log-likelihood of one lag's targets given its sources, and its gradient.
+
+    The particles of frame f + k inside the inner box are a Poisson process
+    with intensity ``alpha sum_j N(y - x_j - mu; s^2) + rho`` over the
+    particles x_j of frame f: each particle is found again (probability
+    alpha) displaced by a Gaussian step, and rho collects particles not seen
+    in frame f. No particle is assigned to another: every source within the
+    cut-off contributes, weighted by its Gaussian. The intensity is the exact
+    expected density for independent particles, so the estimate is
+    consistent (a composite likelihood: the one-to-one nature of the real
+    assignment only changes the error, which is taken from a jackknife).
+    ``theta = (log alpha, log rho, mu_1..d, log s_1..d)`` in scaled units.
+    """
+    from scipy.special import ndtr
+
+    d = lp.u.shape[1]
+    alpha, rho = math.exp(theta[0]), math.exp(theta[1])
+    mu, s = theta[2:2 + d], np.exp(theta[2 + d:])
+    z = (lp.u - mu) / s
+    g = alpha * np.exp(-0.5 * np.sum(z * z, axis=1)) / np.prod(s * math.sqrt(2 * math.pi))
+    lam = np.bincount(lp.tgt, weights=g, minlength=lp.n_tgt) + rho
+    # expected number of targets: sources' Gaussians inside the inner box, plus rho times its area
+    hi, lo = (lp.src_hi - mu) / s, (lp.src_lo - mu) / s
+    Pa = np.maximum(ndtr(hi) - ndtr(lo), 1e-300)
+    P = np.prod(Pa, axis=1)
+    area = lp.area_per_frame * lp.n_frames
+    # a weak prior on log rho (sd 5 around 1 % of the target density): when every target has a
+    # source, rho -> 0 is otherwise a flat direction of the likelihood
+    prior = (theta[1] - lp.log_rho0) / 5.0
+    nll = -float(np.sum(np.log(lam))) + alpha * float(P.sum()) + rho * area + 0.5 * prior * prior
+    r = g / lam[lp.tgt]                                     # responsibility of each pair
+    phi = lambda x: np.exp(-0.5 * x * x) / math.sqrt(2 * math.pi)  # noqa: E731
+    grad = np.empty_like(theta)
+    grad[0] = -float(r.sum()) + alpha * float(P.sum())
+    grad[1] = -float(np.sum(rho / lam)) + rho * area + prior / 5.0
+    w = alpha * P[:, None] / Pa
+    grad[2:2 + d] = -(r @ (z / s)) + np.sum(w * (phi(lo) - phi(hi)) / s, axis=0)
+    grad[2 + d:] = -(r @ (z * z - 1)) + np.sum(w * (phi(lo) * lo - phi(hi) * hi), axis=0)
+    return nll, grad
+
+
+def _fit_pairs(lp: _LagPairs, theta0, hess_inv=None):
+    """Maximum-likelihood parameters of one lag (BFGS from ``theta0``; ``hess_inv``: a starting inverse Hessian)."""
+    from scipy.optimize import minimize
+
+    # BFGS: L-BFGS-B's Fortran step costs milliseconds per call here, more than the likelihood
+    opts = {"maxiter": 400, "gtol": 1e-6}
+    if hess_inv is not None:
+        opts["hess_inv0"] = hess_inv
+    try:
+        r = minimize(_pair_nll, theta0, args=(lp,), jac=True, method="BFGS", options=opts)
+    except ValueError:              # starting inverse Hessian not positive definite
+        opts.pop("hess_inv0", None)
+        r = minimize(_pair_nll, theta0, args=(lp,), jac=True, method="BFGS", options=opts)
+    return r.x
+
+
+def _pair_hessian(theta, lp: _LagPairs):
+    h = 1e-5
+    H = np.empty((theta.size, theta.size))
+    for k in range(theta.size):
+        e = np.zeros_like(theta)
+        e[k] = h
+        H[k] = (_pair_nll(theta + e, lp)[1] - _pair_nll(theta - e, lp)[1]) / (2 * h)
+    return 0.5 * (H + H.T)
+
+
+def _frame_positions(df, comps):
+    f = df["frame"].to_numpy().astype(np.int64)
+    order = np.argsort(f, kind="stable")
+    f = f[order]
+    X = np.column_stack([df[c].to_numpy(dtype=float)[order] for c in comps])
+    ok = np.all(np.isfinite(X), axis=1)
+    f, X = f[ok], X[ok]
+    frames = np.unique(f)
+    starts = np.searchsorted(f, frames)
+    ends = np.r_[starts[1:], len(f)]
+    return {int(fr): X[a:b] for fr, a, b in zip(frames, starts, ends)}
+
+
+def _gather_pairs(pos, lag, cutoff, lo, hi, shift=None) -> _LagPairs:
+    """(target, source) pairs whose displacement is within ``cutoff`` of ``shift`` per axis, frames f -> f + lag.
+
+    Targets are the particles of f + lag whose whole source region (target
+    minus shift, plus or minus the cut-off) lies inside the field, so every
+    particle that can have moved to them was in the field; sources are all
+    particles of f. ``shift`` (m): the expected drift over the lag, so that
+    the cut-off is centred on the peak of the displacements.
+    """
+    from scipy.spatial import cKDTree
+
+    c = np.asarray(cutoff, float)
+    sh = np.zeros_like(c) if shift is None else np.asarray(shift, float)
+    # targets whose whole source region (target - shift +- cut-off) lies inside the field
+    t_lo, t_hi = np.maximum(lo + c + sh, lo), np.minimum(hi - c + sh, hi)
+    ilo, ihi = t_lo / c, t_hi / c
+    us, tg, slo, shi, tfr, sfr = [], [], [], [], [], []
+    n_t = 0
+    for f, S in pos.items():
+        T = pos.get(f + lag)
+        if T is None or len(S) == 0:
+            continue
+        T = T[np.all((T >= t_lo) & (T <= t_hi), axis=1)] / c
+        S = S / c
+        Sq = S if shift is None else S + np.asarray(shift, float) / c
+        slo.append(ilo - S)
+        shi.append(ihi - S)
+        sfr.append(np.full(len(S), f, np.int64))
+        tfr.append(np.full(len(T), f, np.int64))
+        if len(T):
+            m = cKDTree(T).sparse_distance_matrix(cKDTree(Sq), 1.0, p=np.inf, output_type="coo_matrix")
+            us.append(T[m.row] - S[m.col])
+            tg.append(m.row + n_t)
+        n_t += len(T)
+    d = len(c)
+    cat = lambda a, shape: np.concatenate(a) if a else np.empty(shape)  # noqa: E731
+    return _LagPairs(cat(us, (0, d)), cat(tg, (0,)).astype(np.int64), n_t, cat(slo, (0, d)), cat(shi, (0, d)),
+                     float(np.prod(ihi - ilo)), cat(tfr, (0,)).astype(np.int64), cat(sfr, (0,)).astype(np.int64))
+
+
+def _lag_line(k, s2, var, dt):
+    """Weighted least squares of ``s2 = 2 D dt k + c`` over the lags k; returns (D, c)."""
+    w = 1.0 / var
+    A = np.column_stack([2 * dt * k, np.ones_like(k, dtype=float)])
+    coef = np.linalg.solve(A.T @ (A * w[:, None]), A.T @ (w * s2))
+    return float(coef[0]), float(coef[1])
+
+
+def pair_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), max_lag: int = 3, motion_blur: float = 1 / 6,
+                   frame_interval_s: float | None = None, window: float | None = None, n_blocks: int = 20,
+                   bounds: dict | None = None, offset="auto") -> PairDiffusionResult:
+    """Diffusion coefficients without linking: the positions of frame f + k explained by those of frame f.
+
+    For every lag k = 1..``max_lag`` (frames), the particles found in frame
+    f + k are modelled as a Poisson process whose intensity is a sum of
+    Gaussians, one on every particle of frame f (shifted by the drift, width
+    ``2 D k dt + 2 sigma^2 - 4 R D dt`` per axis), weighted by the fraction
+    alpha of particles found again, plus a small uniform density of particles
+    not seen in frame f. That intensity is the exact expected density for
+    independently moving particles, so its maximum-likelihood fit gives the
+    step variance and drift per lag with no particle assigned to another:
+    near neighbours share a target according to their Gaussians instead of
+    one of them taking it. D is then the slope of the variance against lag
+    (localisation error and motion blur in the intercept, or the intercept
+    taken from the localiser's sigma: see ``offset``). The idea is the
+    pair-correlation analysis of Semrau & Schmidt (Biophys. J. 92, 613 (2007),
+    "PICS"); conditioning on the actual particles of frame f instead of
+    assuming a uniform background removes the bias from the clustering of one
+    slowly changing configuration and makes the estimate nearly as precise
+    as from perfectly linked tracks (bench/bench_pair_diffusion.py).
+
+    Why: when particles move a fair fraction of their spacing per frame,
+    linking (even the optimal assignment) swaps the identities of close
+    particles and shortens the steps, which biases D from tracks low (see
+    ``link_ambiguity``); this estimate has no links to get wrong. Only
+    targets whose possible sources all lie in the field are used, so it has
+    no field-of-view bias either. Assumes the particles move independently
+    (dilute suspension); the standard error is a jackknife over blocks of
+    frames.
+
+    Parameters
+    ----------
+    df : DataFrame
+        Localisations with ``frame`` and positions (m) ``x``, ``y`` (and
+        ``z``); the ``particle`` column, if any, is ignored. A trajectories
+        table or the localiser's output (converted to m) both work.
+    axes : sequence of str
+        Any of ``x, y, z, xy, xz, yz, xyz``.
+    max_lag : int
+        Longest lag (frames) in the fit; at least 2.
+    motion_blur : float
+        R in [0, 1/4] (1/6 full-frame exposure, 0 instantaneous); only the
+        localisation error depends on it.
+    frame_interval_s : float, optional
+        s; default from the ``t`` column or the ``frame_interval`` metadata.
+    window : float, optional
+        Cut-off (m, every component): sources farther than this from a
+        target (after the drift) are ignored; default 5 step standard
+        deviations of each lag (found by a first pass).
+    n_blocks : int
+        Contiguous blocks of frames for the jackknife standard error.
+    bounds : dict component -> (lo, hi), optional
+        Field of view (m); default the range of the positions. Only
+        particles at least one cut-off inside it are explained, so that every
+        particle that can have moved to them was in the field.
+    offset : {"auto", "fit", "sigma"}
+        The localisation variance in ``s2 = 2 D dt (k - 2R) + 2 sigma^2``:
+        ``"fit"`` fits it as the intercept (no assumption; needs the slope
+        over lags, so the error is several times larger); ``"sigma"`` takes
+        sigma^2 per component as the mean of the localiser's per-particle
+        variance (columns ``sigma_x``, ``sigma_y``, ``sigma_z`` in m) and fits
+        D alone from every lag (far more precise; a wrong sigma shifts D by
+        ``delta(sigma^2) / ((1 - 2R) dt)``, negligible whenever the localisation error is
+        small against the step); ``"auto"``: ``"sigma"`` when the columns are
+        there, else ``"fit"``.
+
+    Returns
+    -------
+    PairDiffusionResult
+    """
+    axes = _parse_axes(axes)
+    comps = _components(axes)
+    for c in ("frame", *comps):
+        if c not in df.columns:
+            raise UserError(f"localisation table lacks column '{c}'", "give frame and the position columns (m)")
+    if "z" in comps and not np.isfinite(df["z"].to_numpy(dtype=float)).any():
+        raise UserError("z axis requested but the table is 2D (z is NaN everywhere)", "use the axes x, y, xy")
+    R = float(motion_blur)
+    if not (0.0 <= R <= 0.25):
+        raise UserError(f"motion_blur = {motion_blur!r} outside [0, 1/4]", "use 1/6 for full-frame exposure, 0 for instantaneous")
+    max_lag = int(max_lag)
+    if max_lag < 2:
+        raise UserError(f"max_lag = {max_lag}", "give at least 2 lags (the slope of variance against lag is D)")
+    if frame_interval_s is None:
+        if "t" in df.columns and df["frame"].nunique() > 1:
+            ft = df.groupby("frame")["t"].first()
+            dt = float(np.median(np.diff(ft.to_numpy(float)) / np.diff(ft.index.to_numpy())))
+        else:
+            meta = df.attrs.get("ptrack", {}) or {}
+            if meta.get("frame_interval") is None:
+                raise UserError("no frame interval: the table has no t column and no 'frame_interval' metadata",
+                                "pass frame_interval_s")
+            dt = float(meta["frame_interval"])
+    else:
+        dt = float(frame_interval_s)
+    if not (math.isfinite(dt) and dt > 0):
+        raise UserError(f"frame interval = {dt!r} s", "give a positive frame interval")
+    pos = _frame_positions(df, comps)
+    if len(pos) < max_lag + 2:
+        raise UserError(f"{len(pos)} frames with localisations", f"give at least {max_lag + 2} frames")
+    allX = np.concatenate(list(pos.values()))
+    lo, hi = allX.min(axis=0), allX.max(axis=0)
+    if bounds is not None:
+        lo = np.array([bounds[c][0] if c in bounds else lo[i] for i, c in enumerate(comps)], float)
+        hi = np.array([bounds[c][1] if c in bounds else hi[i] for i, c in enumerate(comps)], float)
+    span = hi - lo
+    if np.any(span <= 0):
+        raise UserError("the localisations do not span the field of view in every axis", "check the positions")
+    d = len(comps)
+    n_loc = np.mean([len(v) for v in pos.values()])
+    density = n_loc / float(np.prod(span))
+
+    def fit_lag(k, cut, shift=None, theta0=None):
+        lp = _gather_pairs(pos, k, cut, lo, hi, shift)
+        if lp.n_tgt < 20 or len(lp.u) < 20:
+            raise UserError(f"lag {k}: only {lp.n_tgt} particles inside the field of view at one cut-off "
+                            f"({cut.max() * 1e6:.3g} um) from its edges",
+                            "give a larger field of view, more frames, or a smaller window")
+        if theta0 is None:
+            mu0 = np.zeros(d) if shift is None else np.asarray(shift) / cut
+            theta0 = np.r_[math.log(0.95), math.log(0.05 * lp.n_tgt / (lp.area_per_frame * lp.n_frames)),
+                           mu0, np.full(d, math.log(0.2))]
+        return _fit_pairs(lp, theta0), lp
+
+    # Each lag gets its own cut-off, 5 step standard deviations: beyond it a source's Gaussian is
+    # negligible. The step size of lag 1 comes from a first fit with a cut-off of 1.5 particle
+    # spacings; that of lag k from lag k - 1 (s^2 grows about as k).
+    spacing = density ** (-1.0 / d)
+    rows, thetas, data, wins, covs = [], [], [], [], []
+    for k in range(1, max_lag + 1):
+        if k == 1:
+            # first pass: where the peak is (drift) and how wide
+            w1 = np.minimum(np.full(d, 1.5 * spacing), span / 3.5) if window is None else \
+                np.full(d, check_window(window, span))
+            th, _ = fit_lag(k, w1)
+            shift = th[2:2 + d] * w1
+            s_prev = float(np.max(np.exp(th[2 + d:]) * w1))
+            th, _ = fit_lag(k, np.minimum(np.full(d, 5.0 * s_prev), span / 3.0), shift)
+            shift = th[2:2 + d] * np.minimum(np.full(d, 5.0 * s_prev), span / 3.0)
+            s_now = float(np.max(np.exp(th[2 + d:]) * np.minimum(np.full(d, 5.0 * s_prev), span / 3.0)))
+            win = np.minimum(np.full(d, 5.0 * s_now), span / 3.0)
+        else:
+            s_prev = max(math.sqrt(rows[-1][f"s2_{c}"]) for c in comps)
+            win = np.minimum(np.full(d, 5.0 * s_prev * math.sqrt(k / (k - 1))), span / 3.0)
+            shift = np.array([rows[-1][f"mu_{c}"] for c in comps]) * k / (k - 1)
+        if window is not None:
+            win = np.full(d, check_window(window, span))
+        th, lp = fit_lag(k, win, shift)
+        cov = np.linalg.pinv(_pair_hessian(th, lp))
+        cov = 0.5 * (cov + cov.T)
+        covs.append(cov if np.all(np.linalg.eigvalsh(cov) > 0) else None)
+        sd = np.exp(th[2 + d:]) * win
+        row = {"lag": k, "alpha": math.exp(th[0]), "unmatched_density": math.exp(th[1]) / float(np.prod(win)),
+               "n_targets": lp.n_tgt, "n_pairs": len(lp.u)}
+        for i, c in enumerate(comps):
+            row[f"s2_{c}"] = sd[i] ** 2
+            row[f"s2_{c}_err"] = 2 * sd[i] ** 2 * math.sqrt(max(cov[2 + d + i, 2 + d + i], 0.0))
+            row[f"mu_{c}"] = th[2 + i] * win[i]
+            row[f"mu_{c}_err"] = win[i] * math.sqrt(max(cov[2 + i, 2 + i], 0.0))
+            row[f"window_{c}"] = win[i]
+        rows.append(row)
+        thetas.append(th)
+        data.append(lp)
+        wins.append(win)
+    lags = pd.DataFrame(rows)
+    kk = lags["lag"].to_numpy(float)
+    offsets = _pair_offsets(df, comps, offset, R)
+
+    def estimates(s2_by_comp, var_by_comp):
+        Dc, cc = {}, {}
+        for c in comps:
+            if offsets is None:
+                Dc[c], cc[c] = _lag_line(kk, s2_by_comp[c], var_by_comp[c], dt)
+            else:
+                # known localisation variance: s2_k - 2 sigma^2 = 2 D dt (k - 2R); weighted mean over lags
+                x = 2 * dt * (kk - 2 * R)
+                w = x * x / var_by_comp[c]
+                Dc[c] = float(np.sum(w * (s2_by_comp[c] - offsets[c]) / x) / np.sum(w))
+                cc[c] = float(offsets[c] - 4 * R * Dc[c] * dt)
+        return Dc, cc
+
+    var = {c: lags[f"s2_{c}_err"].to_numpy() ** 2 for c in comps}
+    Dc, cc = estimates({c: lags[f"s2_{c}"].to_numpy() for c in comps}, var)
+
+    # jackknife over contiguous blocks of source frames (displacements of nearby frames are correlated)
+    frames_all = np.array(sorted(pos))
+    n_blocks = int(min(max(n_blocks, 2), len(frames_all)))
+    blocks = np.array_split(frames_all, n_blocks)
+    jack = {c: [] for c in comps}
+    for blk in blocks:
+        b0, b1 = blk[0], blk[-1]
+        s2j = {c: np.empty(max_lag) for c in comps}
+        for j, (th, lp) in enumerate(zip(thetas, data)):
+            # warm start: the full fit and its inverse Hessian
+            thj = _fit_pairs(lp.subset(lambda f: (f < b0) | (f > b1)), th, covs[j])
+            for i, c in enumerate(comps):
+                s2j[c][j] = (math.exp(thj[2 + d + i]) * wins[j][i]) ** 2
+        Dj, _ = estimates(s2j, var)
+        for c in comps:
+            jack[c].append(Dj[c])
+    n = len(blocks)
+    Derr_c = {c: np.asarray(jack[c]) for c in comps}
+
+    res_D, res_err, res_sig = {}, {}, {}
+    for a in axes:
+        cs = AXES[a]
+        res_D[a] = float(np.mean([Dc[c] for c in cs]))
+        jj = np.mean([Derr_c[c] for c in cs], axis=0)
+        res_err[a] = float(math.sqrt((n - 1) / n * np.sum((jj - jj.mean()) ** 2)))
+        # intercept = 2 sigma^2 - 4 R D dt per component
+        res_sig[a] = float(math.sqrt(max(np.mean([(cc[c] + 4 * R * Dc[c] * dt) / 2 for c in cs]), 0.0)))
+    # drift: mu_k = v k dt (no intercept: localisation noise has zero mean), weighted through the origin
+    mu1 = {}
+    for c in comps:
+        tk, w = kk * dt, 1.0 / np.maximum(lags[f"mu_{c}_err"].to_numpy(), 1e-300) ** 2
+        mu1[c] = float(np.sum(w * tk * lags[f"mu_{c}"].to_numpy()) / np.sum(w * tk * tk))
+    D_plane = float(np.mean([Dc[c] for c in comps[:2]]))
+    # P(another particle nearer than the partner) for a Poisson field in the plane and Gaussian steps
+    plane_density = n_loc / float(np.prod(span[:2]))
+    x = 2 * math.pi * plane_density * 2 * max(D_plane, 0.0) * dt
+    ambiguity = x / (1 + x)
+    return PairDiffusionResult(D=res_D, D_err=res_err, sigma_loc=res_sig, drift_velocity=mu1, lags=lags,
+                               window={c: float(w) for c, w in zip(comps, wins[0])}, link_ambiguity=float(ambiguity),
+                               frame_interval=dt, motion_blur=R, n_blocks=n)
+
+
+def _pair_offsets(df, comps, offset, R):
+    """2 sigma^2 per component from the localiser's ``sigma_<c>`` columns, or None to fit the intercept."""
+    if offset not in ("auto", "fit", "sigma"):
+        raise UserError(f"offset = {offset!r}", "choose auto, fit or sigma")
+    have = all(f"sigma_{c}" in df.columns for c in comps)
+    if offset == "fit" or (offset == "auto" and not have):
+        return None
+    if not have:
+        missing = [f"sigma_{c}" for c in comps if f"sigma_{c}" not in df.columns]
+        raise UserError(f"offset = 'sigma' but the table lacks {', '.join(missing)}", "use offset = 'fit'")
+    out = {}
+    for c in comps:
+        v = df[f"sigma_{c}"].to_numpy(dtype=float)
+        v = v[np.isfinite(v)]
+        if v.size == 0:
+            raise UserError(f"column sigma_{c} has no finite value", "use offset = 'fit'")
+        out[c] = float(2 * np.mean(v * v))
+    return out
+
+
+def check_window(window, span) -> float:
+    """Validate a pair-search window half-width (m) against the field of view."""
+    w = float(window)
+    if not (math.isfinite(w) and w > 0):
+        raise UserError(f"window = {window!r}", "give a positive window half-width in m")
+    if np.any(2 * w >= np.asarray(span)):
+        raise UserError(f"window = {w:g} m is half the field of view or more", "give a smaller window")
+    return w

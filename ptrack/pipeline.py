@@ -349,6 +349,34 @@ def _save_fig(fig, path):
     plt.close(fig)
 
 
+def _pair_check(table: pd.DataFrame, axes, motion_blur: float, D_tracks: dict, D_tracks_err: dict) -> dict | None:
+    """Linking-free D (:func:`ptrack.msd.pair_diffusion`) as a check on D from the tracks.
+
+    D from tracks is biased low when particles move a fair fraction of their
+    spacing per frame (swapped identities shorten the steps, and trackpy's
+    adaptive search cuts long steps in crowded subnetworks); the pair
+    estimate has no links to get wrong but assumes independent particles.
+    When the two agree (difference within twice the larger error: they share
+    their data, so the quadrature sum would be too wide) the more precise is
+    reported; when they disagree, the pair estimate if links are ambiguous
+    (``link_ambiguity`` > 5 %), else the tracks (unambiguous links and a
+    disagreement point to correlated particles, which the pair model
+    ignores). Returns None when the field of view is too small for it.
+    """
+    from . import msd
+
+    try:
+        pr = msd.pair_diffusion(table, axes=axes, motion_blur=motion_blur)
+    except UserError:
+        return None
+    D = {k: float(v) for k, v in pr.D.items()}
+    err = {k: float(v) for k, v in pr.D_err.items()}
+    z = abs(D["xy"] - D_tracks["xy"]) / max(err["xy"], D_tracks_err["xy"])
+    preferred = pr.link_ambiguity > 0.05 if z > 2.0 else err["xy"] < D_tracks_err["xy"]
+    return {"D": D, "D_err": err, "link_ambiguity": float(pr.link_ambiguity), "z_difference": float(z),
+            "preferred": bool(preferred), "lags": int(len(pr.lags))}
+
+
 def analyze_movie(movie, radius: float, viscosity: float, temperature: float, report_dir=None, out=None,
                   wall_z: float = 0.0, height: float | None = None, subtract_drift: bool = False,
                   estimator: str = "cve", motion_blur: float = 1 / 6, n_boot: int = 200, seed: int = 0,
@@ -386,7 +414,11 @@ def analyze_movie(movie, radius: float, viscosity: float, temperature: float, re
     Returns
     -------
     dict
-        ``D``, ``D_err`` (dicts axis -> m^2/s), ``D_stokes_einstein``,
+        ``D``, ``D_err`` (dicts axis -> m^2/s: from the tracks, corrected for
+        the field of view, or from all particle pairs when links are
+        ambiguous, see ``D_method`` and :func:`_pair_check`), ``D_tracks``,
+        ``D_tracks_err``, ``D_pairs`` (the linking-free estimate, its error and
+        ``link_ambiguity``), ``D_stokes_einstein``,
         ``D_over_D_SE``, ``n_tracks``, ``hindered`` (wall correction),
         ``nondiffusive`` (flagged tracks), ``track`` (tracking summary).
     """
@@ -402,12 +434,20 @@ def analyze_movie(movie, radius: float, viscosity: float, temperature: float, re
     dt = float(metadata(table).get("frame_interval") or np.median(np.diff(np.unique(table["t"]))))
     three_d = bool(np.isfinite(table["z"].to_numpy()).any())
     axes = ("x", "y", "xy")
+    # The field of view (image, and the calibrated z range in 3D) cuts tracks: correct the loss of
+    # long steps at its edges (msd.estimate_diffusion, field_of_view).
     res = msd.estimate_diffusion(table, axes=axes, estimator=estimator, motion_blur=motion_blur, n_boot=n_boot,
-                                 seed=seed, subtract_drift=subtract_drift)
+                                 seed=seed, subtract_drift=subtract_drift, field_of_view="auto")
     D_se = msd.stokes_einstein(radius, viscosity, temperature)
+    D_tracks = {k: float(v) for k, v in res.D.items()}
+    D_tracks_err = {k: float(v) for k, v in res.D_err.items()}
+    pair = _pair_check(table, axes, motion_blur, D_tracks, D_tracks_err)
+    D_best, D_best_err = (pair["D"], pair["D_err"]) if pair and pair["preferred"] else (D_tracks, D_tracks_err)
     summary = {
-        "D": {k: float(v) for k, v in res.D.items()}, "D_err": {k: float(v) for k, v in res.D_err.items()},
-        "D_stokes_einstein": float(D_se), "D_over_D_SE": float(res.D["xy"] / D_se),
+        "D": D_best, "D_err": D_best_err,
+        "D_method": "linking-free (pairs)" if pair and pair["preferred"] else "tracks",
+        "D_tracks": D_tracks, "D_tracks_err": D_tracks_err, "D_pairs": pair,
+        "D_stokes_einstein": float(D_se), "D_over_D_SE": float(D_best["xy"] / D_se),
         "n_tracks": int(table["particle"].nunique()), "n_localisations": int(len(table)),
         "sigma_loc": {k: float(v) for k, v in res.sigma_loc.items()}, "estimator": res.estimator,
         "drift_corrected": bool(res.drift_corrected), "radius_m": radius, "viscosity_Pa_s": viscosity,
@@ -429,7 +469,7 @@ def analyze_movie(movie, radius: float, viscosity: float, temperature: float, re
         if w.sum() > 0:
             mean_ratio = float(np.sum(np.nan_to_num(ratio) * w) / w.sum())
             hind = {"wall_z_m": wall_z, "mean_height_m": float(np.sum(np.nan_to_num(h) * w) / w.sum()),
-                    "mean_ratio_parallel": mean_ratio, "D_bulk_xy": float(res.D["xy"] / mean_ratio),
+                    "mean_ratio_parallel": mean_ratio, "D_bulk_xy": float(D_best["xy"] / mean_ratio),
                     "D_SE_hindered_xy": float(D_se * mean_ratio),
                     "n_particles_below_contact": int((~okh).sum())}
     elif height is not None:
@@ -437,7 +477,7 @@ def analyze_movie(movie, radius: float, viscosity: float, temperature: float, re
         if hh <= radius:
             raise UserError(f"height = {hh} m is not above the radius {radius} m", "give the centre height above the wall")
         r = float(wall.parallel_ratio(hh, radius))
-        hind = {"assumed_height_m": hh, "ratio_parallel": r, "D_bulk_xy": float(res.D["xy"] / r),
+        hind = {"assumed_height_m": hh, "ratio_parallel": r, "D_bulk_xy": float(D_best["xy"] / r),
                 "D_SE_hindered_xy": float(D_se * r)}
     summary["hindered"] = hind
     flags = msd.powerlaw_flags(table)
@@ -461,7 +501,7 @@ def analyze_movie(movie, radius: float, viscosity: float, temperature: float, re
             fig, ax = plt.subplots(figsize=(6, 4))
             ax.bar(np.arange(len(per)), per["D"] * 1e12, color="C0")
             ax.axhline(D_se * 1e12, color="k", ls="--", label="Stokes-Einstein")
-            ax.axhline(res.D["xy"] * 1e12, color="C1", label=f"ensemble ({res.estimator})")
+            ax.axhline(D_best["xy"] * 1e12, color="C1", label=f"ensemble ({summary['D_method']})")
             if hind is not None:
                 ax.axhline(hind["D_SE_hindered_xy"] * 1e12, color="C2", ls=":", label="S-E x wall ratio")
             ax.set_xlabel("track")

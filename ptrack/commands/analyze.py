@@ -43,6 +43,10 @@ def run(args) -> int:
     print(f"{s['n_tracks']} tracks, {s['n_localisations']} localisations")
     for a in s["D"]:
         print(f"D_{a} = {s['D'][a] * um:.4f} +- {s['D_err'][a] * um:.4f} um^2/s")
+    pr = s.get("D_pairs")
+    print(f"  reported: {s['D_method']}; from tracks (field-of-view corrected) {s['D_tracks']['xy'] * um:.4f} +- "
+          f"{s['D_tracks_err']['xy'] * um:.4f}" + (f", linking-free {pr['D']['xy'] * um:.4f} +- {pr['D_err']['xy'] * um:.4f}"
+                                                    f" (link ambiguity {pr['link_ambiguity']:.3f})" if pr else ""))
     print(f"Stokes-Einstein D = {s['D_stokes_einstein'] * um:.4f} um^2/s; D_xy / D_SE = {s['D_over_D_SE']:.3f}")
     h = s.get("hindered")
     if h:
