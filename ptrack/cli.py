@@ -20,6 +20,7 @@ COMMANDS = {
     "wall": ("ptrack.commands.wall_cmd", "hindered diffusion near a wall: ratios for a height, or the height for a ratio"),
     "track": ("ptrack.commands.track", "microscope TIFF series -> trajectories table (2D, or 3D with a calibration stack)"),
     "analyze": ("ptrack.commands.analyze", "track + MSD + Stokes-Einstein + wall correction, with plots and a summary"),
+    "velocity": ("ptrack.commands.velocity_cmd", "drift velocities: per particle (GLS), ensemble, against height"),
     "simulate": ("ptrack.commands.simulate", "run a simulation scene (TOML) and stream its trajectories"),
     "study": (None, "verification studies of the simulator (see 'ptrack study --help')"),
     "render": ("ptrack.commands.render", "render a trajectories table as a synthetic microscope movie"),
