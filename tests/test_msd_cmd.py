@@ -110,3 +110,29 @@ def test_msd_console_script_exit_status(tmp_path):
     r = subprocess.run([sys.executable, "-m", "ptrack", "msd", str(tmp_path / "none.parquet")],
                        capture_output=True, text=True)
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "not found" in r.stderr
+
+
+def test_msd_command_field_of_view_and_linking_free(tmp_path, capsys):
+    # Brownian tracks spread over a wide area: the linking-free estimate (identities ignored) and the
+    # field-of-view-corrected one both recover D; the JSON says what was done
+    n_p, n_f, D = 60, 120, D_SE
+    rng = np.random.default_rng(3)
+    start = rng.uniform(0, 40e-6, (n_p, 1, 2))
+    p = start + M.brownian_tracks(n_p, n_f, D, DT, 10e-9, 0.0, n_dims=2, seed=4)
+    fr = np.tile(np.arange(n_f), n_p)
+    pa = np.repeat(np.arange(n_p), n_f)
+    df = make_table(fr, fr * DT, pa, p[..., 0].ravel(), p[..., 1].ravel(), meta={"frame_interval": DT},
+                    sigma_x=np.full(n_p * n_f, 10e-9), sigma_y=np.full(n_p * n_f, 10e-9))
+    traj = tmp_path / "tr.parquet"
+    write_table(df, traj)
+    out = tmp_path / "o.json"
+    rc = main(["msd", str(traj), "--motion-blur", "0", "--field-of-view", "x,y", "--linking-free", "--no-plot",
+               "--json", str(out)])
+    assert rc == 0
+    assert "linking-free" in capsys.readouterr().out
+    res = json.loads(out.read_text())
+    assert set(res["field_of_view"]) == {"x", "y"}
+    lf = res["linking_free"]
+    assert abs(lf["D"]["xy"] - D) < 4 * lf["D_err"]["xy"]
+    assert lf["link_ambiguity"] < 0.05
+    assert main(["msd", str(traj), "--field-of-view", "q"]) == 2

@@ -39,6 +39,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--flag-level", type=float, default=0.01, help="false-positive rate of the non-diffusive flag on Brownian tracks (default 0.01)")
     p.add_argument("--n-boot", type=int, default=200, help="bootstrap resamples over whole particles (default 200)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the bootstrap and flag bounds")
+    p.add_argument("--field-of-view", default="none", metavar="none|auto|x,y[,z]",
+                   help="correct the loss of long steps at the edges of the field of view: 'auto' = the range of x "
+                        "and y (measured tracks), or the components whose range limits what is seen, e.g. x,y,z "
+                        "(default none: simulations)")
+    p.add_argument("--linking-free", action="store_true",
+                   help="also estimate D without the links (ptrack.msd.pair_diffusion: unbiased when particles "
+                        "move a fair fraction of their spacing per frame)")
     p.add_argument("--json", metavar="OUT", help="write a JSON summary")
     p.add_argument("--plot", metavar="OUT.png", help="MSD plot path (default <TRAJ>_msd.png)")
     p.add_argument("--no-plot", action="store_true", help="do not write the plot")
@@ -101,8 +108,13 @@ def run(args) -> int:
         used.attrs.update(df.attrs)
         if used.empty:
             raise UserError("every track is flagged as non-diffusive", "run without --exclude-flagged")
+    fov = {"none": None, "auto": "auto"}.get(args.field_of_view.strip().lower())
+    if fov is None and args.field_of_view.strip().lower() != "none":
+        fov = tuple(c.strip() for c in args.field_of_view.split(",") if c.strip())
     res = M.estimate_diffusion(used, axes=axes, estimator=args.estimator, motion_blur=M_R, n_boot=args.n_boot,
-                               seed=args.seed, subtract_drift=args.subtract_drift, max_lag=args.max_lag)
+                               seed=args.seed, subtract_drift=args.subtract_drift, max_lag=args.max_lag,
+                               field_of_view=fov)
+    pair = M.pair_diffusion(used, axes=axes, motion_blur=M_R) if args.linking_free else None
     d_se = M.stokes_einstein(radius, args.viscosity, args.temperature) if radius is not None else None
 
     # ---- report
@@ -119,7 +131,12 @@ def run(args) -> int:
         if d_se:
             line += f"   {D / d_se:.3f} +- {e / d_se:.2g}"
         print(line)
-    print("side by side (um^2/s): " + " | ".join(f"D_{a} = {_fmt(res.D[a] * 1e12, res.D_err[a] * 1e12)}" for a in axes))
+    print("side by side (um^2/s): " + " | ".join(f"D_{a} = {_fmt(res.D[a] * 1e12, res.D_err[a] * 1e12)}" for a in axes)
+          + (f"; field of view corrected ({', '.join(M._resolve_fov(used, fov))})" if fov else ""))
+    if pair is not None:
+        print("linking-free (um^2/s): " + " | ".join(f"D_{a} = {_fmt(pair.D[a] * 1e12, pair.D_err[a] * 1e12)}"
+                                                    for a in axes)
+              + f"; link ambiguity {pair.link_ambiguity:.3f} (above ~0.05 D from tracks is biased low)")
     if d_se:
         print(f"Stokes-Einstein: D_SE = {d_se:.4g} m^2/s = {d_se * 1e12:.4g} um^2/s "
               f"(r = {radius:.4g} m, mu = {args.viscosity:.4g} Pa s, T = {args.temperature:.5g} K)")
@@ -150,6 +167,10 @@ def run(args) -> int:
         out["flagged"] = [{"particle": int(r["particle"]), "alpha": float(r["alpha"]), "reason": r["reason"]}
                           for _, r in flagged.iterrows()]
         out["excluded_flagged"] = bool(args.exclude_flagged)
+        out["field_of_view"] = M._resolve_fov(used, fov) if fov else None
+        if pair is not None:
+            out["linking_free"] = {"D": pair.D, "D_err": pair.D_err, "link_ambiguity": pair.link_ambiguity,
+                                   "drift_velocity": pair.drift_velocity}
         out["source"] = str(args.traj)
         with atomic_output(args.json, "w") as fh:
             json.dump(out, fh, indent=2)
