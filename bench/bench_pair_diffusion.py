@@ -35,31 +35,6 @@ sys.path.insert(0, str(ROOT))
 
 from ptrack import msd as M  # noqa: E402
 from ptrack.link import filter_short, link  # noqa: E402
-from ptrack.table import make_table  # noqa: E402
-
-
-def points_in_view(seed, n_frames, L, density, D, dt, sigma):
-    """Free Brownian particles seen in the view [0, L)^2 (periodic outer box: uniform density)."""
-    rng = np.random.default_rng(seed)
-    s = math.sqrt(2 * D * dt)
-    margin = 6 * s
-    Lb = L + 2 * margin
-    X = rng.uniform(0, Lb, (rng.poisson(density * Lb * Lb), 2))
-    fr, pa, xs, ys = [], [], [], []
-    for f in range(n_frames):
-        if f:
-            X = np.mod(X + s * rng.standard_normal(X.shape), Lb)
-        Y = X - margin
-        ok = np.flatnonzero(np.all((Y >= 0) & (Y < L), axis=1))
-        fr.append(np.full(ok.size, f))
-        pa.append(ok)
-        xs.append(Y[ok, 0] + sigma * rng.standard_normal(ok.size))
-        ys.append(Y[ok, 1] + sigma * rng.standard_normal(ok.size))
-    fr, pa = np.concatenate(fr), np.concatenate(pa)
-    df = make_table(fr, fr * dt, pa, np.concatenate(xs), np.concatenate(ys), meta={"frame_interval": dt})
-    df["sigma_x"] = sigma
-    df["sigma_y"] = sigma
-    return df
 
 
 def part_a(seeds: int):
@@ -72,7 +47,7 @@ def part_a(seeds: int):
         rows = {k: [] for k in ("linked", "linked+fov", "true ids+fov", "pairs")}
         amb = []
         for k in range(seeds):
-            df = points_in_view(1000 + k, F, L, dens, D, dt, sig)
+            df = M.brownian_field(F, L, dens, D, dt, sigma=sig, seed=1000 + k)
             feats = df.drop(columns=["particle", "x", "y"]).assign(x_px=df["x"], y_px=df["y"])
             t0 = time.perf_counter()
             with warnings.catch_warnings():

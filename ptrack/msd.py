@@ -515,6 +515,14 @@ def _components(axes) -> tuple:
 # drift
 # ---------------------------------------------------------------------------
 
+def check_motion_blur(motion_blur) -> float:
+    """The motion-blur parameter R as a float in [0, 1/4], or a UserError."""
+    R = float(motion_blur)
+    if not (0.0 <= R <= 0.25):
+        raise UserError(f"motion_blur = {motion_blur!r} outside [0, 1/4]", "use 1/6 for full-frame exposure, 0 for instantaneous")
+    return R
+
+
 def _resolve_fov(df: pd.DataFrame, field_of_view) -> dict:
     """Field of view as ``{component: extent (m)}``; empty for none.
 
@@ -1247,9 +1255,7 @@ def estimate_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), estimator: str =
     estimator = str(estimator).lower()
     if estimator not in ("cve", "ols"):
         raise UserError(f"unknown estimator '{estimator}'", "choose 'cve' or 'ols'")
-    R = float(motion_blur)
-    if not (0.0 <= R <= 0.25):
-        raise UserError(f"motion_blur = {motion_blur!r} outside [0, 1/4]", "use 1/6 for full-frame exposure, 0 for instantaneous")
+    R = check_motion_blur(motion_blur)
     n_boot = int(n_boot)
     if n_boot < 0:
         raise UserError(f"n_boot = {n_boot} is negative", "give 0 or a positive number of resamples")
@@ -1364,9 +1370,7 @@ def particle_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), motion_blur: flo
         get NaN.
     """
     axes = _parse_axes(axes)
-    R = float(motion_blur)
-    if not (0.0 <= R <= 0.25):
-        raise UserError(f"motion_blur = {motion_blur!r} outside [0, 1/4]", "use 1/6 for full-frame exposure, 0 for instantaneous")
+    R = check_motion_blur(motion_blur)
     comps = _components(axes)
     tr = _prepare(df, comps, min_rows=3)
     if subtract_drift:
@@ -1564,6 +1568,60 @@ def brownian_tracks(n_particles: int, n_frames: int, D: float, dt: float, sigma:
 # ---------------------------------------------------------------------------
 # plot
 # ---------------------------------------------------------------------------
+
+def brownian_field(n_frames: int, size: float, density: float, D: float, dt: float, sigma: float = 0.0,
+                   drift=(0.0, 0.0), seed=0) -> pd.DataFrame:
+    """What a camera sees of free Brownian particles: a trajectories table of those inside a square view.
+
+    Particles start uniformly over a periodic box wider than the view by six
+    step lengths on each side (so the density in view stays uniform) and
+    enter and leave the view as in a real experiment; a particle keeps its id
+    when it comes back. Positions carry Gaussian localisation noise.
+
+    Parameters
+    ----------
+    n_frames : int
+    size : float
+        Side of the view [0, size)^2, m.
+    density : float
+        Particles per m^2.
+    D : float
+        m^2/s.
+    dt : float
+        Frame interval, s.
+    sigma : float
+        Localisation error per axis, m (also written as ``sigma_x``, ``sigma_y``).
+    drift : (vx, vy)
+        m/s.
+    seed : int or numpy.random.Generator
+
+    Returns
+    -------
+    DataFrame
+        Trajectories table (``frame``, ``t``, ``particle``, ``x``, ``y``, ``sigma_x``, ``sigma_y``).
+    """
+    from .table import make_table
+
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    s = math.sqrt(2 * D * dt)
+    margin = 6 * s
+    Lb = size + 2 * margin
+    X = rng.uniform(0, Lb, (rng.poisson(density * Lb * Lb), 2))
+    fr, pa, xs, ys = [], [], [], []
+    for f in range(n_frames):
+        if f:
+            X = np.mod(X + s * rng.standard_normal(X.shape) + np.asarray(drift, float) * dt, Lb)
+        Y = X - margin
+        ok = np.flatnonzero(np.all((Y >= 0) & (Y < size), axis=1))
+        fr.append(np.full(ok.size, f))
+        pa.append(ok)
+        xs.append(Y[ok, 0] + sigma * rng.standard_normal(ok.size))
+        ys.append(Y[ok, 1] + sigma * rng.standard_normal(ok.size))
+    fr, pa = np.concatenate(fr), np.concatenate(pa)
+    n = len(fr)
+    return make_table(fr, fr * dt, pa, np.concatenate(xs), np.concatenate(ys), meta={"frame_interval": dt},
+                      sigma_x=np.full(n, float(sigma)), sigma_y=np.full(n, float(sigma)))
+
 
 def plot_msd(result, path, title: str | None = None):
     """Log-log ensemble MSD per axis with the fitted model, written as PNG.
@@ -1910,9 +1968,7 @@ def pair_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), max_lag: int = 3, mo
             raise UserError(f"localisation table lacks column '{c}'", "give frame and the position columns (m)")
     if "z" in comps and not np.isfinite(df["z"].to_numpy(dtype=float)).any():
         raise UserError("z axis requested but the table is 2D (z is NaN everywhere)", "use the axes x, y, xy")
-    R = float(motion_blur)
-    if not (0.0 <= R <= 0.25):
-        raise UserError(f"motion_blur = {motion_blur!r} outside [0, 1/4]", "use 1/6 for full-frame exposure, 0 for instantaneous")
+    R = check_motion_blur(motion_blur)
     max_lag = int(max_lag)
     if max_lag < 2:
         raise UserError(f"max_lag = {max_lag}", "give at least 2 lags (the slope of variance against lag is D)")

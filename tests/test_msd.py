@@ -343,37 +343,11 @@ def test_ensemble_msd_standard_error_matches_replicate_scatter():
 
 # --------------------------------------------------------------------- field of view, linking-free D
 
-def _points_in_view(seed, n_frames, L, density, D, dt, sigma=0.0, margin=None, drift=(0.0, 0.0)):
-    """Free Brownian particles (uniform start over a region wider than the view) seen in a square
-    view [0, L)^2 (m): the trajectories table of what a camera sees (ids kept across re-entries)."""
-    rng = np.random.default_rng(seed)
-    s = math.sqrt(2 * D * dt)
-    margin = 6 * s if margin is None else margin
-    Lb = L + 2 * margin
-    n = rng.poisson(density * Lb * Lb)
-    X = rng.uniform(0, Lb, (n, 2))
-    fr, pa, xs, ys = [], [], [], []
-    for f in range(n_frames):
-        if f:
-            X = X + s * rng.standard_normal(X.shape) + np.asarray(drift) * dt
-            X = np.mod(X, Lb)             # periodic outer box: the density stays uniform
-        Y = X - margin
-        ok = np.flatnonzero(np.all((Y >= 0) & (Y < L), axis=1))
-        fr.append(np.full(ok.size, f))
-        pa.append(ok)
-        xs.append(Y[ok, 0] + sigma * rng.standard_normal(ok.size))
-        ys.append(Y[ok, 1] + sigma * rng.standard_normal(ok.size))
-    fr, pa = np.concatenate(fr), np.concatenate(pa)
-    df = make_table(fr, fr * dt, pa, np.concatenate(xs), np.concatenate(ys), meta={"frame_interval": dt})
-    # a particle that wraps round the outer box comes back as a new one
-    return df
-
-
 def test_field_of_view_correction_removes_edge_bias():
     # steps of s = 4 units in a 100-unit view: tracks lose long steps at the edges, MSD low by ~1.6 s / L
     L, dt, D = 100.0, 0.1, 80.0
     s = math.sqrt(2 * D * dt)
-    df = pd.concat([_points_in_view(k, 60, L, 0.01, D, dt).assign(particle=lambda d, k=k: d["particle"] + 100000 * k)
+    df = pd.concat([M.brownian_field(60, L, 0.01, D, dt, seed=k).assign(particle=lambda d, k=k: d["particle"] + 100000 * k)
                     for k in range(6)], ignore_index=True)
     raw = M.estimate_diffusion(df, axes=("xy",), motion_blur=0.0, n_boot=0)
     cor = M.estimate_diffusion(df, axes=("xy",), motion_blur=0.0, n_boot=0, field_of_view={"x": L, "y": L})
@@ -401,9 +375,7 @@ def test_pair_diffusion_unbiased_where_linking_is_not():
     L, dt, D, sig = 150.0, 0.1, 80.0, 0.1
     Ds, errs, Dl = [], [], []
     for k in range(4):
-        df = _points_in_view(k, 80, L, 0.0022, D, dt, sigma=sig)
-        df["sigma_x"] = sig
-        df["sigma_y"] = sig
+        df = M.brownian_field(80, L, 0.0022, D, dt, sigma=sig, seed=k)
         r = M.pair_diffusion(df.drop(columns="particle"), axes=("x", "y", "xy"), motion_blur=0.0)
         Ds.append(r.D["xy"])
         errs.append(r.D_err["xy"])
@@ -423,7 +395,7 @@ def test_pair_diffusion_unbiased_where_linking_is_not():
 def test_pair_diffusion_fitted_offset_and_drift():
     L, dt, D, sig = 150.0, 0.1, 80.0, 1.0
     v = (30.0, -20.0)
-    df = _points_in_view(7, 120, L, 0.001, D, dt, sigma=sig, drift=v)
+    df = M.brownian_field(120, L, 0.001, D, dt, sigma=sig, drift=v, seed=7).drop(columns=["sigma_x", "sigma_y"])
     r = M.pair_diffusion(df, axes=("x", "y", "xy"), motion_blur=0.0, offset="fit", max_lag=5)
     assert abs(r.D["xy"] - D) < 3 * r.D_err["xy"]
     assert r.sigma_loc["xy"] == pytest.approx(sig, abs=0.5)
