@@ -477,13 +477,13 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
 
     maps = np.full((K, n, n), -1.0, np.float32)
     if coarse and K > 4 * coarse:
-        # coarse to fine: every ``coarse``-th page first, then every page within 2 coarse steps of the best
+        # coarse to fine: every ``coarse``-th page first, then every page within a coarse step + 1 of the best
         first = np.arange(0, K, coarse)
         for k in first:
             maps[k] = corr(k)
         np.copyto(maps, -1.0, where=np.isnan(maps))    # a constant window (padding) gives NaN
         best = int(first[np.argmax(maps[first].reshape(len(first), -1).max(1))])
-        lo, hi = max(0, best - 2 * coarse), min(K, best + 2 * coarse + 1)
+        lo, hi = max(0, best - coarse - 1), min(K, best + coarse + 2)
         for k in range(lo, hi):
             if k % coarse:
                 maps[k] = corr(k)
