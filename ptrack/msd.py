@@ -1760,7 +1760,11 @@ class _LagPairs:
         return out
 
 
-def _pair_nll(theta, lp: _LagPairs):
+#: log rho (scaled units) standing for "no unmatched particles": exp(-40) ~ 4e-18 per box
+LOG_RHO_OFF = -40.0
+
+
+def _pair_nll(theta, lp: _LagPairs, prior: bool = True):
     """Negative log-likelihood of one lag's targets given its sources, and its gradient.
 
     The particles of frame f + k inside the inner box are a Poisson process
@@ -1789,43 +1793,68 @@ def _pair_nll(theta, lp: _LagPairs):
     area = lp.area_per_frame * lp.n_frames
     # a weak prior on log rho (sd 5 around 1 % of the target density): when every target has a
     # source, rho -> 0 is otherwise a flat direction of the likelihood
-    prior = (theta[1] - lp.log_rho0) / 5.0
-    nll = -float(np.sum(np.log(lam))) + alpha * float(P.sum()) + rho * area + 0.5 * prior * prior
+    pr = (theta[1] - lp.log_rho0) / 5.0 if prior else 0.0
+    nll = -float(np.sum(np.log(lam))) + alpha * float(P.sum()) + rho * area + 0.5 * pr * pr
     r = g / lam[lp.tgt]                                     # responsibility of each pair
     phi = lambda x: np.exp(-0.5 * x * x) / math.sqrt(2 * math.pi)  # noqa: E731
     grad = np.empty_like(theta)
     grad[0] = -float(r.sum()) + alpha * float(P.sum())
-    grad[1] = -float(np.sum(rho / lam)) + rho * area + prior / 5.0
+    grad[1] = -float(np.sum(rho / lam)) + rho * area + pr / 5.0
     w = alpha * P[:, None] / Pa
     grad[2:2 + d] = -(r @ (z / s)) + np.sum(w * (phi(lo) - phi(hi)) / s, axis=0)
     grad[2 + d:] = -(r @ (z * z - 1)) + np.sum(w * (phi(lo) * lo - phi(hi) * hi), axis=0)
     return nll, grad
 
 
-def _fit_pairs(lp: _LagPairs, theta0, hess_inv=None):
-    """Maximum-likelihood parameters of one lag (BFGS from ``theta0``; ``hess_inv``: a starting inverse Hessian)."""
+def _free(theta, rho_free: bool) -> np.ndarray:
+    """Indices of the fitted parameters: all, or all but log rho (held at :data:`LOG_RHO_OFF`)."""
+    return np.arange(theta.size) if rho_free else np.r_[0, 2:theta.size]
+
+
+def _fit_pairs(lp: _LagPairs, theta0, hess_inv=None, rho_free: bool = True):
+    """Maximum-likelihood parameters of one lag (BFGS from ``theta0``; ``hess_inv``: a starting inverse Hessian
+    of the fitted parameters). With ``rho_free=False`` there are no unmatched particles (rho held at ~0)."""
     from scipy.optimize import minimize
+
+    idx = _free(theta0, rho_free)
+    base = np.array(theta0, float)
+    if not rho_free:
+        base[1] = LOG_RHO_OFF
+
+    def fun(t):
+        full = base.copy()
+        full[idx] = t
+        v, g = _pair_nll(full, lp, prior=rho_free)
+        return v, g[idx]
 
     # BFGS: L-BFGS-B's Fortran step costs milliseconds per call here, more than the likelihood
     opts = {"maxiter": 400, "gtol": 1e-6}
     if hess_inv is not None:
         opts["hess_inv0"] = hess_inv
     try:
-        r = minimize(_pair_nll, theta0, args=(lp,), jac=True, method="BFGS", options=opts)
+        r = minimize(fun, base[idx], jac=True, method="BFGS", options=opts)
     except ValueError:              # starting inverse Hessian not positive definite
         opts.pop("hess_inv0", None)
-        r = minimize(_pair_nll, theta0, args=(lp,), jac=True, method="BFGS", options=opts)
-    return r.x
+        r = minimize(fun, base[idx], jac=True, method="BFGS", options=opts)
+    out = base.copy()
+    out[idx] = r.x
+    return out
 
 
-def _pair_hessian(theta, lp: _LagPairs):
+def _pair_cov(theta, lp: _LagPairs, rho_free: bool = True):
+    """(Covariance of all parameters (zero rows for a held rho), inverse Hessian of the fitted ones or None)."""
+    idx = _free(theta, rho_free)
     h = 1e-5
-    H = np.empty((theta.size, theta.size))
-    for k in range(theta.size):
+    H = np.empty((idx.size, idx.size))
+    for a, k in enumerate(idx):
         e = np.zeros_like(theta)
         e[k] = h
-        H[k] = (_pair_nll(theta + e, lp)[1] - _pair_nll(theta - e, lp)[1]) / (2 * h)
-    return 0.5 * (H + H.T)
+        H[a] = (_pair_nll(theta + e, lp, prior=rho_free)[1] - _pair_nll(theta - e, lp, prior=rho_free)[1])[idx] / (2 * h)
+    inv = np.linalg.pinv(0.5 * (H + H.T))
+    inv = 0.5 * (inv + inv.T)
+    cov = np.zeros((theta.size, theta.size))
+    cov[np.ix_(idx, idx)] = inv
+    return cov, (inv if np.all(np.linalg.eigvalsh(inv) > 0) else None)
 
 
 def _frame_positions(df, comps):
@@ -2017,7 +2046,7 @@ def pair_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), max_lag: int = 3, mo
     # negligible. The step size of lag 1 comes from a first fit with a cut-off of 1.5 particle
     # spacings; that of lag k from lag k - 1 (s^2 grows about as k).
     spacing = density ** (-1.0 / d)
-    rows, thetas, data, wins, covs = [], [], [], [], []
+    rows, thetas, data, wins, covs, free = [], [], [], [], [], []
     for k in range(1, max_lag + 1):
         if k == 1:
             # first pass: where the peak is (drift) and how wide
@@ -2037,11 +2066,20 @@ def pair_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), max_lag: int = 3, mo
         if window is not None:
             win = np.full(d, check_window(window, span))
         th, lp = fit_lag(k, win, shift)
-        cov = np.linalg.pinv(_pair_hessian(th, lp))
-        cov = 0.5 * (cov + cov.T)
-        covs.append(cov if np.all(np.linalg.eigvalsh(cov) > 0) else None)
+        # Unmatched particles (rho) are kept only if the data ask for them (likelihood ratio above
+        # the 5 % point of the boundary chi-bar^2, 2.71): with every particle detected, a free
+        # rho >= 0 sits on its boundary, takes the far tail of the steps and biases s^2 low by up
+        # to ~1 %.
+        th0 = _fit_pairs(lp, th, rho_free=False)
+        rho_free = 2 * (_pair_nll(th0, lp, prior=False)[0] - _pair_nll(th, lp, prior=False)[0]) > 2.71
+        if not rho_free:
+            th = th0
+        cov, h_inv = _pair_cov(th, lp, rho_free)
+        covs.append(h_inv)
+        free.append(rho_free)
         sd = np.exp(th[2 + d:]) * win
-        row = {"lag": k, "alpha": math.exp(th[0]), "unmatched_density": math.exp(th[1]) / float(np.prod(win)),
+        row = {"lag": k, "alpha": math.exp(th[0]),
+               "unmatched_density": math.exp(th[1]) / float(np.prod(win)) if rho_free else 0.0,
                "n_targets": lp.n_tgt, "n_pairs": len(lp.u)}
         for i, c in enumerate(comps):
             row[f"s2_{c}"] = sd[i] ** 2
@@ -2083,7 +2121,7 @@ def pair_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), max_lag: int = 3, mo
         s2j = {c: np.empty(max_lag) for c in comps}
         for j, (th, lp) in enumerate(zip(thetas, data)):
             # warm start: the full fit and its inverse Hessian
-            thj = _fit_pairs(lp.subset(lambda f: (f < b0) | (f > b1)), th, covs[j])
+            thj = _fit_pairs(lp.subset(lambda f: (f < b0) | (f > b1)), th, covs[j], rho_free=free[j])
             for i, c in enumerate(comps):
                 s2j[c][j] = (math.exp(thj[2 + d + i]) * wins[j][i]) ** 2
         Dj, _ = estimates(s2j, var)
