@@ -1714,6 +1714,13 @@ class PairDiffusionResult:
     frame_interval, motion_blur : float
     n_blocks : int
         Jackknife blocks.
+    offset_used : str
+        ``"sigma"`` (intercept from the localiser's sigma and R: the precise
+        estimate) or ``"fit"`` (intercept fitted; also when the two disagree,
+        which points to a wrong motion-blur R or sigma).
+    intercept, intercept_err : dict component -> float
+        Fitted intercept of the step variance against lag,
+        ``2 sigma^2 - 4 R D dt`` (m^2), and its jackknife error: a check on R.
     """
 
     D: dict
@@ -1726,6 +1733,9 @@ class PairDiffusionResult:
     frame_interval: float
     motion_blur: float
     n_blocks: int
+    offset_used: str = "fit"
+    intercept: dict = field(default_factory=dict)
+    intercept_err: dict = field(default_factory=dict)
 
 
 class _LagPairs:
@@ -1977,14 +1987,16 @@ def pair_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), max_lag: int = 3, mo
         particle that can have moved to them was in the field.
     offset : {"auto", "fit", "sigma"}
         The localisation variance in ``s2 = 2 D dt (k - 2R) + 2 sigma^2``:
-        ``"fit"`` fits it as the intercept (no assumption; needs the slope
-        over lags, so the error is several times larger); ``"sigma"`` takes
-        sigma^2 per component as the mean of the localiser's per-particle
-        variance (columns ``sigma_x``, ``sigma_y``, ``sigma_z`` in m) and fits
-        D alone from every lag (far more precise; a wrong sigma shifts D by
-        ``delta(sigma^2) / ((1 - 2R) dt)``, negligible whenever the localisation error is
-        small against the step); ``"auto"``: ``"sigma"`` when the columns are
-        there, else ``"fit"``.
+        ``"fit"`` fits the intercept (no assumption; needs the slope over
+        lags, so the error is larger); ``"sigma"`` takes sigma^2 per
+        component as the mean of the localiser's per-particle variance
+        (columns ``sigma_x``, ``sigma_y``, ``sigma_z`` in m) and the given R,
+        and fits D alone from every lag (far more precise; a wrong sigma
+        shifts D by ``delta(sigma^2) / ((1 - 2R) dt)``, a wrong R by
+        ``2 delta(R) / (1 - 2R)``); ``"auto"``: ``"sigma"`` when the columns
+        are there and the intercept they imply agrees with the fitted one
+        within 2.5 standard errors, else ``"fit"`` (``offset_used`` says
+        which).
 
     Returns
     -------
@@ -2094,28 +2106,31 @@ def pair_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), max_lag: int = 3, mo
     lags = pd.DataFrame(rows)
     kk = lags["lag"].to_numpy(float)
     offsets = _pair_offsets(df, comps, offset, R)
+    var = {c: lags[f"s2_{c}_err"].to_numpy() ** 2 for c in comps}
 
-    def estimates(s2_by_comp, var_by_comp):
+    def estimates(s2_by_comp, known):
+        """Per component (D, intercept): the intercept fitted, or taken from the localiser's sigma and R."""
         Dc, cc = {}, {}
         for c in comps:
-            if offsets is None:
-                Dc[c], cc[c] = _lag_line(kk, s2_by_comp[c], var_by_comp[c], dt)
+            if known is None:
+                Dc[c], cc[c] = _lag_line(kk, s2_by_comp[c], var[c], dt)
             else:
                 # known localisation variance: s2_k - 2 sigma^2 = 2 D dt (k - 2R); weighted mean over lags
                 x = 2 * dt * (kk - 2 * R)
-                w = x * x / var_by_comp[c]
-                Dc[c] = float(np.sum(w * (s2_by_comp[c] - offsets[c]) / x) / np.sum(w))
-                cc[c] = float(offsets[c] - 4 * R * Dc[c] * dt)
+                w = x * x / var[c]
+                Dc[c] = float(np.sum(w * (s2_by_comp[c] - known[c]) / x) / np.sum(w))
+                cc[c] = float(known[c] - 4 * R * Dc[c] * dt)
         return Dc, cc
 
-    var = {c: lags[f"s2_{c}_err"].to_numpy() ** 2 for c in comps}
-    Dc, cc = estimates({c: lags[f"s2_{c}"].to_numpy() for c in comps}, var)
+    s2_all = {c: lags[f"s2_{c}"].to_numpy() for c in comps}
+    fitted = estimates(s2_all, None)
+    known = estimates(s2_all, offsets) if offsets is not None else None
 
     # jackknife over contiguous blocks of source frames (displacements of nearby frames are correlated)
     frames_all = np.array(sorted(pos))
     n_blocks = int(min(max(n_blocks, 2), len(frames_all)))
     blocks = np.array_split(frames_all, n_blocks)
-    jack = {c: [] for c in comps}
+    jack = {"fit": {c: [] for c in comps}, "known": {c: [] for c in comps}, "c": {c: [] for c in comps}}
     for blk in blocks:
         b0, b1 = blk[0], blk[-1]
         s2j = {c: np.empty(max_lag) for c in comps}
@@ -2124,11 +2139,27 @@ def pair_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), max_lag: int = 3, mo
             thj = _fit_pairs(lp.subset(lambda f: (f < b0) | (f > b1)), th, covs[j], rho_free=free[j])
             for i, c in enumerate(comps):
                 s2j[c][j] = (math.exp(thj[2 + d + i]) * wins[j][i]) ** 2
-        Dj, _ = estimates(s2j, var)
+        Df, cf = estimates(s2j, None)
+        Dk, _ = estimates(s2j, offsets) if offsets is not None else (Df, None)
         for c in comps:
-            jack[c].append(Dj[c])
+            jack["fit"][c].append(Df[c])
+            jack["known"][c].append(Dk[c])
+            jack["c"][c].append(cf[c])
     n = len(blocks)
-    Derr_c = {c: np.asarray(jack[c]) for c in comps}
+
+    def jk_se(vals):
+        v = np.asarray(vals)
+        return float(math.sqrt((n - 1) / n * np.sum((v - v.mean()) ** 2)))
+
+    # The localiser's sigma makes D far more precise, but the intercept it implies,
+    # 2 sigma^2 - 4 R D dt, hangs on the motion-blur R: a wrong R (e.g. 1/6 for a movie without
+    # blur) shifts D by 2R/(1-2R). Use it only where the fitted intercept agrees (2.5 SE).
+    offset_used = "fit"
+    if known is not None:
+        agree = all(abs(fitted[1][c] - known[1][c]) <= 2.5 * jk_se(jack["c"][c]) for c in comps)
+        offset_used = "sigma" if agree else "fit (the localiser's sigma with this motion blur R disagrees)"
+    Dc, cc = known if offset_used == "sigma" else fitted
+    Derr_c = {c: np.asarray(jack["known" if offset_used == "sigma" else "fit"][c]) for c in comps}
 
     res_D, res_err, res_sig = {}, {}, {}
     for a in axes:
@@ -2150,7 +2181,9 @@ def pair_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), max_lag: int = 3, mo
     ambiguity = x / (1 + x)
     return PairDiffusionResult(D=res_D, D_err=res_err, sigma_loc=res_sig, drift_velocity=mu1, lags=lags,
                                window={c: float(w) for c, w in zip(comps, wins[0])}, link_ambiguity=float(ambiguity),
-                               frame_interval=dt, motion_blur=R, n_blocks=n)
+                               frame_interval=dt, motion_blur=R, n_blocks=n, offset_used=offset_used,
+                               intercept={c: float(fitted[1][c]) for c in comps},
+                               intercept_err={c: jk_se(jack["c"][c]) for c in comps})
 
 
 def _pair_offsets(df, comps, offset, R):

@@ -373,8 +373,16 @@ def _pair_check(table: pd.DataFrame, axes, motion_blur: float, D_tracks: dict, D
     err = {k: float(v) for k, v in pr.D_err.items()}
     z = abs(D["xy"] - D_tracks["xy"]) / max(err["xy"], D_tracks_err["xy"])
     preferred = pr.link_ambiguity > 0.05 if z > 2.0 else err["xy"] < D_tracks_err["xy"]
+    # the fitted intercept 2 sigma^2 - 4 R D dt with the localiser's sigma gives the motion blur
+    # the data imply (a check on the R assumed)
+    implied = None
+    if all(f"sigma_{c}" in table.columns for c in ("x", "y")) and D["xy"] > 0:
+        s2 = np.mean([np.nanmean(table[f"sigma_{c}"].to_numpy(float) ** 2) for c in ("x", "y")])
+        c_fit = np.mean([pr.intercept[c] for c in ("x", "y")])
+        implied = float((2 * s2 - c_fit) / (4 * D["xy"] * pr.frame_interval))
     return {"D": D, "D_err": err, "link_ambiguity": float(pr.link_ambiguity), "z_difference": float(z),
-            "preferred": bool(preferred), "lags": int(len(pr.lags))}
+            "preferred": bool(preferred), "lags": int(len(pr.lags)), "offset": pr.offset_used,
+            "motion_blur_assumed": float(motion_blur), "motion_blur_implied": implied}
 
 
 def analyze_movie(movie, radius: float, viscosity: float, temperature: float, report_dir=None, out=None,
@@ -428,6 +436,7 @@ def analyze_movie(movie, radius: float, viscosity: float, temperature: float, re
     radius = check_positive("radius", radius)
     viscosity = check_positive("viscosity", viscosity)
     temperature = check_positive("temperature", temperature)
+    motion_blur = msd.check_motion_blur(motion_blur)       # before the tracking, not after
     track_summary = {}
     if table is None:
         table, track_summary = track_movie(movie, out=out, **track_kwargs)

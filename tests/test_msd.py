@@ -407,3 +407,19 @@ def test_pair_diffusion_fitted_offset_and_drift():
         M.pair_diffusion(df, offset="sigma")
     with pytest.raises(UserError, match="lacks column"):
         M.pair_diffusion(df.drop(columns="y"))
+
+
+def test_pair_diffusion_checks_the_motion_blur_it_is_given():
+    # no blur in the data: with R = 0 the localiser's sigma fixes the intercept (precise); told R = 1/6,
+    # the intercept it implies (2 sigma^2 - 4 R D dt) disagrees with the fitted one and D falls back to the fit
+    L, dt, D, sig = 150.0, 0.1, 80.0, 0.2
+    df = M.brownian_field(100, L, 0.0015, D, dt, sigma=sig, seed=11)
+    good = M.pair_diffusion(df, axes=("xy",), motion_blur=0.0)
+    wrong = M.pair_diffusion(df, axes=("xy",), motion_blur=1 / 6)
+    assert good.offset_used == "sigma" and wrong.offset_used.startswith("fit")
+    assert abs(good.D["xy"] - D) < 3 * good.D_err["xy"]
+    assert abs(wrong.D["xy"] - D) < 3 * wrong.D_err["xy"]
+    assert good.D_err["xy"] < 0.8 * wrong.D_err["xy"]
+    # the fitted intercept is 2 sigma^2 (R = 0) within its error
+    for c in ("x", "y"):
+        assert abs(good.intercept[c] - 2 * sig**2) < 3 * good.intercept_err[c]
