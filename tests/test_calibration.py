@@ -300,3 +300,19 @@ def test_close_pair_at_different_heights(calib, sep_um, z1, z2, angle):
         assert np.all(ok | (df["chi2"].to_numpy() > 4)), (df, zs)
         good += len(df) == len(xs) and sorted(near) == list(range(len(xs)))
     assert good >= 3, good
+
+
+def test_masked_ncc_equals_opencv_masked_mode():
+    """The edge-cut correlation (visible part of the template only) is OpenCV's masked TM_CCOEFF_NORMED."""
+    import cv2
+
+    from ptrack.calibration import _masked_ncc
+
+    rng = np.random.default_rng(8)
+    win = rng.normal(size=(49, 47)).astype(np.float32)
+    t = rng.normal(size=(41, 41)).astype(np.float32)
+    for r0, r1, c0, c1 in ((3, 41, 0, 30), (0, 20, 5, 41), (0, 41, 0, 41)):
+        mask = np.zeros_like(t)
+        mask[r0:r1, c0:c1] = 1
+        ref = cv2.matchTemplate(win, t, cv2.TM_CCOEFF_NORMED, mask=mask)
+        np.testing.assert_allclose(_masked_ncc(win, t, r0, r1, c0, c1), ref, atol=1e-5)
