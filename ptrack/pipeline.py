@@ -99,6 +99,10 @@ def locate_movie(movie, brightfield: bool = False, diameter: float | None = None
             raw = movie[i]
             if calib is None and not brightfield and isinstance(bg, str) and bg == "spatial":
                 img = None      # fast path: the localiser finds the background at block resolution
+            elif calib is not None:
+                # GDPT: inverted but not thresholded (brightfield rings have bright and dark lobes),
+                # prepared as the calibration's templates were
+                img = cal_mod.prepare_gdpt(raw, calib, brightfield=brightfield, background=bg)
             else:
                 img = prepare(raw, brightfield=brightfield, background=bg, bg_size=bg_size)
             if calib is None:
@@ -210,6 +214,8 @@ def track_movie(movie, out=None, pixel_size: float | None = None, frame_interval
         z = None
     else:
         opt.update(cm=linked["cm"])
+        if "chi2" in linked:  # light the fitted templates leave unexplained (noise units): high = overlap compromise
+            opt.update(chi2=linked["chi2"])
         if "edge" in linked:  # image cut by the frame edge: z from its visible part only
             opt.update(edge=linked["edge"].astype(bool))
         z = linked["z"].to_numpy()

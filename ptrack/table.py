@@ -24,13 +24,13 @@ from .errors import UserError, atomic_output, require_file
 
 REQUIRED_COLUMNS = ("frame", "t", "particle", "x", "y", "z")
 OPTIONAL_COLUMNS = (
-    "x_px", "y_px", "z_px", "mass", "size", "ecc", "signal", "cm", "edge",
+    "x_px", "y_px", "z_px", "mass", "size", "ecc", "signal", "cm", "chi2", "edge",
     "vx", "vy", "vz", "radius", "sigma_x", "sigma_y", "sigma_z",
 )
 UNITS = {
     "frame": "1", "t": "s", "particle": "1", "x": "m", "y": "m", "z": "m",
     "x_px": "px", "y_px": "px", "vx": "m/s", "vy": "m/s", "vz": "m/s",
-    "radius": "m", "sigma_x": "m", "sigma_y": "m", "sigma_z": "m", "cm": "1",
+    "radius": "m", "sigma_x": "m", "sigma_y": "m", "sigma_z": "m", "cm": "1", "chi2": "1",
 }
 META_KEY = "ptrack"
 
