@@ -637,3 +637,19 @@ def test_camera_adu_distribution_equals_direct_simulation(cam):
         dof = keep.sum() - 1
         assert chi2 < dof + 5 * np.sqrt(2 * dof), (chi2, dof)
         assert abs(a[~keep].sum() - b[~keep].sum()) < 5 * np.sqrt(a[~keep].sum() + b[~keep].sum() + 1)
+
+
+def test_coherent_field_phase_is_relative_to_the_illumination():
+    # the forward-scattered amplitude (k = 0 of the field) does not change as the particle moves
+    # along z: the illumination propagates with it. An absolute phase 2 pi n dz / lambda here
+    # made the brightfield contrast repeat every lambda / n.
+    from sim.render.optics import Optics, otf_planes
+
+    optics = Optics()
+    n_med, lam = optics.medium_index, optics.wavelength
+    dz = np.array([1.0e-6, 1.0e-6 + 0.25 * lam / n_med, 1.0e-6 + lam / n_med, 2.0e-6])
+    _, re, im = otf_planes(optics, 100e-9, 64, dz, field=True)
+    a0 = re[:, 0, 0] + 1j * im[:, 0, 0]
+    np.testing.assert_allclose(a0, a0[0], rtol=1e-6, atol=1e-9 * abs(a0[0]))
+    # and the image does not repeat after lambda / n (it did, exactly, with the absolute phase)
+    assert np.abs(re[2] - re[0]).max() > 0.05 * np.abs(re[0]).max()

@@ -224,6 +224,13 @@ def otf_planes(optics: Optics, pixel: float, n: int, defocus, dtype=np.complex12
     sel = mask > 0
     base_phase = 2 * np.pi * (optics.astigmatism / optics.wavelength) * astig[sel]
     kz_sel = 2 * np.pi * kz[sel]
+    if field:
+        # The field interferes with the unscattered illumination, a plane wave along z that gains
+        # 2 pi n dz / lambda itself: only the defocus phase relative to it, (kz - n/lambda) dz, is
+        # physical. Without this the coherent brightfield contrast repeated every lambda/n (0.39 um
+        # in water at 519 nm). The intensity PSF is blind to this global phase, so it is left as it
+        # was there (bit-identical renders).
+        kz_sel = kz_sel - 2 * np.pi * optics.medium_index / optics.wavelength
     amp_mask = mask[sel]
     fpx = np.fft.fftfreq(n)  # cycles/pixel
     rpx = np.fft.rfftfreq(n)
