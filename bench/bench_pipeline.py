@@ -205,20 +205,25 @@ def _image_radius(cal, z):
     return sides[k] / 2
 
 
-def _crowded(d, bins):
-    """GDPT on the shipped crowded movie: all particles, binned in z, and split by overlap of their images."""
+def _gdpt_movie(path, cal, brightfield=False):
+    """GDPT on every frame of a movie (no Cm cut): ({frame: features}, seconds per frame)."""
     from ptrack.calibration import prepare_gdpt
 
+    feats = {}
+    t0 = time.perf_counter()
+    with open_movie(path) as mv:
+        for f in range(len(mv)):
+            feats[f] = locate_3d(prepare_gdpt(mv[f], cal, brightfield=brightfield), cal, cm_min=0.0)
+    return feats, (time.perf_counter() - t0) / max(len(feats), 1)
+
+
+def _crowded(d, bins):
+    """GDPT on the shipped crowded movie: all particles, binned in z, and split by overlap of their images."""
     params = json.loads((d / "params.json").read_text())
     cal = load_calibration(d / "calib.tif", z_csv=d / "calib_z.csv")
     truth_all = pd.read_parquet(d / "truth.parquet")
     truth = truth_all[truth_all["in_frame"]] if "in_frame" in truth_all else truth_all
-    feats = {}
-    t0 = time.perf_counter()
-    with open_movie(d / "movie.tif") as mv:
-        for f in range(len(mv)):
-            feats[f] = locate_3d(prepare_gdpt(mv[f], cal), cal, cm_min=0.0)
-    el = (time.perf_counter() - t0) / max(len(feats), 1)
+    feats, el = _gdpt_movie(d / "movie.tif", cal)
     res = _eval_3d(feats, truth)
     rm = _print_3d(f"data/synthetic/diffusion3d ({params['n_particles']} particles, {params['camera']['photons']:.0f} "
                    f"photons, 160 x 160 px, images up to 65 px wide: most overlap; {1000 * el:.0f} ms/frame)",
@@ -265,17 +270,10 @@ def _crowded(d, bins):
 
 def _brightfield(d):
     """Brightfield GDPT on the shipped epd_brightfield movie (dark particles, signed defocused images)."""
-    from ptrack.calibration import prepare_gdpt
-
     cal = load_calibration(d / "calib.tif", z_csv=d / "calib_z.csv", brightfield=True)
     truth = pd.read_parquet(d / "truth.parquet")
     truth = truth[truth["in_frame"]] if "in_frame" in truth else truth
-    feats = {}
-    t0 = time.perf_counter()
-    with open_movie(d / "movie.tif") as mv:
-        for f in range(len(mv)):
-            feats[f] = locate_3d(prepare_gdpt(mv[f], cal, brightfield=True), cal, cm_min=0.0)
-    el = (time.perf_counter() - t0) / max(len(feats), 1)
+    feats, el = _gdpt_movie(d / "movie.tif", cal, brightfield=True)
     res = _eval_3d(feats, truth)
     bins = np.array([cal.z[0], 2e-6, 4e-6, 6e-6, 8e-6, 10e-6, 12e-6, cal.z[-1] + 1e-9])
     rm = _print_3d(f"data/synthetic/epd_brightfield (brightfield, 20x NA 0.4, calibration {cal.z[0] * 1e6:.2f}-"

@@ -2158,7 +2158,7 @@ def pair_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), max_lag: int = 3, mo
     # at 2.5 SE one movie in six fell back to the imprecise fit for nothing).
     offset_used = "fit"
     if known is not None:
-        agree = all(abs(fitted[1][c] - known[1][c]) <= 4.0 * jk_se(jack["c"][c]) for c in comps)
+        agree = offset == "sigma" or all(abs(fitted[1][c] - known[1][c]) <= 4.0 * jk_se(jack["c"][c]) for c in comps)
         offset_used = "sigma" if agree else "fit (the localiser's sigma with this motion blur R disagrees)"
     Dc, cc = known if offset_used == "sigma" else fitted
     Derr_c = {c: np.asarray(jack["known" if offset_used == "sigma" else "fit"][c]) for c in comps}

@@ -449,8 +449,8 @@ def analyze_movie(movie, radius: float, viscosity: float, temperature: float, re
     dt = float(metadata(table).get("frame_interval") or np.median(np.diff(np.unique(table["t"]))))
     three_d = bool(np.isfinite(table["z"].to_numpy()).any())
     axes = ("x", "y", "xy")
-    # The field of view (image, and the calibrated z range in 3D) cuts tracks: correct the loss of
-    # long steps at its edges (msd.estimate_diffusion, field_of_view).
+    # The image edges cut tracks: correct the loss of long steps there (msd.estimate_diffusion,
+    # field_of_view; x and y only: in z the calibrated range need not cut tracks).
     res = msd.estimate_diffusion(table, axes=axes, estimator=estimator, motion_blur=motion_blur, n_boot=n_boot,
                                  seed=seed, subtract_drift=subtract_drift, field_of_view="auto")
     D_se = msd.stokes_einstein(radius, viscosity, temperature)
