@@ -434,7 +434,9 @@ def analyze_movie(movie, radius: float, viscosity: float, temperature: float, re
         ``D_tracks_err``, ``D_pairs`` (the linking-free estimate, its error and
         ``link_ambiguity``), ``D_stokes_einstein``,
         ``D_over_D_SE``, ``n_tracks``, ``hindered`` (wall correction),
-        ``nondiffusive`` (flagged tracks), ``track`` (tracking summary).
+        ``nondiffusive`` (flagged tracks), ``drift_velocity`` (ensemble drift
+        per axis, m/s, with its error and the particles' chi^2 per degree of
+        freedom about it), ``track`` (tracking summary).
     """
     from . import msd, wall
     from .table import metadata
@@ -495,6 +497,17 @@ def analyze_movie(movie, radius: float, viscosity: float, temperature: float, re
         hind = {"assumed_height_m": hh, "ratio_parallel": r, "D_bulk_xy": float(D_best["xy"] / r),
                 "D_SE_hindered_xy": float(D_se * r)}
     summary["hindered"] = hind
+    # the common drift (EPD: electrophoretic or sedimentation drift), per particle by GLS, then the ensemble
+    try:
+        from .velocity import ensemble_velocity, particle_velocity
+
+        ens = ensemble_velocity(particle_velocity(table, axes="xyz" if three_d else "xy", motion_blur=motion_blur),
+                                seed=seed)
+        summary["drift_velocity"] = {r.axis: {"v": float(r.v), "v_err": float(r.v_err), "chi2_dof": float(r.chi2_dof)}
+                                     for r in ens.itertuples()}
+        summary["units"]["drift_velocity"] = "m/s"
+    except UserError:          # tracks too short for a velocity with an error
+        summary["drift_velocity"] = None
     flags = msd.powerlaw_flags(table)
     flagged = flags[flags["flagged"]]
     summary["nondiffusive"] = {"n_flagged": int(len(flagged)), "n_assessed": int(np.isfinite(flags["alpha"]).sum()),

@@ -139,3 +139,8 @@ def test_cli_analyze_and_missing_calibration(movie, tmp_path):
     assert "um^2/s" in r.stdout
     s = json.loads((tmp_path / "a.json").read_text())
     assert {"D", "D_err", "D_stokes_einstein", "n_tracks"} <= set(s)
+    # both D estimates and which one is reported; no drift in this movie: the ensemble drift is 0 within errors
+    assert s["D_method"] in ("tracks", "linking-free (pairs)") and set(s["D_tracks"]) == {"x", "y", "xy"}
+    assert set(s["drift_velocity"]) == {"x", "y"}
+    for v in s["drift_velocity"].values():
+        assert abs(v["v"]) < 4 * v["v_err"]

@@ -57,6 +57,9 @@ def run(args) -> int:
               f"{pr['motion_blur_assumed']:.3f} assumed (--motion-blur: 1/6 for a shutter open the whole frame, "
               "0 for short exposures)")
     print(f"Stokes-Einstein D = {s['D_stokes_einstein'] * um:.4f} um^2/s; D_xy / D_SE = {s['D_over_D_SE']:.3f}")
+    if s.get("drift_velocity"):
+        print("drift velocity (um/s): " + "  ".join(f"v_{a} = {v['v'] * 1e6:+.3f} +- {v['v_err'] * 1e6:.3f}"
+                                                   for a, v in s["drift_velocity"].items()))
     h = s.get("hindered")
     if h:
         print(f"wall: mean D_par/D0 = {h.get('mean_ratio_parallel', h.get('ratio_parallel')):.3f}, "
