@@ -2071,13 +2071,14 @@ def pair_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), max_lag: int = 3, mo
             # first pass: where the peak is (drift) and how wide
             w1 = np.minimum(np.full(d, 1.5 * spacing), span / 3.5) if window is None else \
                 np.full(d, check_window(window, span))
-            th, _ = fit_lag(k, w1)
-            shift = th[2:2 + d] * w1
-            s_prev = float(np.max(np.exp(th[2 + d:]) * w1))
-            th, _ = fit_lag(k, np.minimum(np.full(d, 5.0 * s_prev), span / 3.0), shift)
-            shift = th[2:2 + d] * np.minimum(np.full(d, 5.0 * s_prev), span / 3.0)
-            s_now = float(np.max(np.exp(th[2 + d:]) * np.minimum(np.full(d, 5.0 * s_prev), span / 3.0)))
-            win = np.minimum(np.full(d, 5.0 * s_now), span / 3.0)
+            # (twice: the first cut-off is a guess from the spacing; a cut-off is at most a third of
+            # the field, so that targets one cut-off inside it remain)
+            shift = None
+            for _pass in range(2):
+                th, _lp = fit_lag(k, w1, shift)
+                shift = th[2:2 + d] * w1
+                w1 = np.minimum(np.full(d, 5.0 * float(np.max(np.exp(th[2 + d:]) * w1))), span / 3.0)
+            win = w1
         else:
             s_prev = max(math.sqrt(rows[-1][f"s2_{c}"]) for c in comps)
             win = np.minimum(np.full(d, 5.0 * s_prev * math.sqrt(k / (k - 1))), span / 3.0)
