@@ -197,7 +197,7 @@ def accuracy() -> list[tuple[str, str]]:
         rows.append((f"z-interpolated PSF vs exact, max |diff| / peak, defocus {z * 1e6:.3f} um",
                      f"{np.abs(a - ex).max() / ex.max():.1e}"))
     # end to end (PSF + noise): Airy-fit scatter on noisy frames vs the Cramer-Rao bound
-    from sim.render import render_frames
+    from sim.render import localisation_crlb, render_frames
 
     for photons in (500.0, 2000.0, 20000.0):
         camn = Camera(photons=photons, background=10.0)
@@ -207,17 +207,7 @@ def accuracy() -> list[tuple[str, str]]:
         fr = np.arange(n)
         t = make_table(fr, fr * 0.1, fr, xs * PX, ys * PX, np.zeros(n), meta={"frame_interval": 0.1})
         frames = np.array(list(render_frames(t, (40, 40), None, camn, seed=2)), float)
-
-        def mu_e(x, y):
-            tt = make_table([0], [0.0], [0], [x * PX], [y * PX], [0.0], meta={"frame_interval": 0.1})
-            return next(expected_frames(tt, (40, 40), None, camn)) * camn.quantum_efficiency
-
-        dd = 1e-3
-        m = mu_e(20.2, 19.9)
-        J = np.stack([((mu_e(20.2 + dd, 19.9) - mu_e(20.2 - dd, 19.9)) / (2 * dd)).ravel(),
-                      ((mu_e(20.2, 19.9 + dd) - mu_e(20.2, 19.9 - dd)) / (2 * dd)).ravel(),
-                      (m - camn.background * camn.quantum_efficiency).ravel(), np.ones(m.size)], 1)
-        crlb = np.sqrt(np.linalg.inv(J.T @ (J / (m + camn.read_noise ** 2).ravel()[:, None]))[0, 0])
+        crlb = localisation_crlb(camn, 20.2, 19.9, shape=(40, 40))
         yy, xx = np.mgrid[12:29, 12:29]
 
         def model(p):

@@ -15,7 +15,8 @@ from scipy.special import j1
 
 from ptrack.cli import main
 from ptrack.table import make_table, read_table
-from sim.render import Camera, Optics, expected_frames, expose, psf_image, render_calibration, render_frames, render_movie
+from sim.render import (Camera, Optics, expected_frames, expose, localisation_crlb, psf_image, render_calibration,
+                        render_frames, render_movie)
 from sim.render.optics import sample_pixel_size
 
 PX = 6.5e-6 / 63.0  # default sample pixel, m
@@ -483,18 +484,7 @@ def test_localisation_scatter_matches_the_cramer_rao_bound():
     f = np.arange(n)
     t = make_table(f, f * 0.1, f, xs * PX, ys * PX, np.zeros(n), meta={"frame_interval": 0.1})
     frames = np.array(list(render_frames(t, (40, 40), None, cam, seed=2)), float)
-
-    def mu_e(x, y):
-        tt = make_table([0], [0.0], [0], [x * PX], [y * PX], [0.0], meta={"frame_interval": 0.1})
-        return next(expected_frames(tt, (40, 40), None, cam)) * cam.quantum_efficiency
-
-    d = 1e-3
-    m = mu_e(20.2, 19.9)
-    J = np.stack([((mu_e(20.2 + d, 19.9) - mu_e(20.2 - d, 19.9)) / (2 * d)).ravel(),
-                  ((mu_e(20.2, 19.9 + d) - mu_e(20.2, 19.9 - d)) / (2 * d)).ravel(),
-                  (m - cam.background * cam.quantum_efficiency).ravel(), np.ones(m.size)], 1)
-    fisher = J.T @ (J / (m + cam.read_noise ** 2).ravel()[:, None])
-    crlb = np.sqrt(np.linalg.inv(fisher)[0, 0])
+    crlb = localisation_crlb(cam, 20.2, 19.9, shape=(40, 40))
     yy, xx = np.mgrid[13:28, 13:28]
     errs = []
     for k in range(n):

@@ -36,12 +36,12 @@ import scipy.fft as sfft
 from numba import njit
 
 from ptrack.errors import UserError, atomic_output, check_positive
-from ptrack.table import metadata, to_jsonable, validate, write_table
+from ptrack.table import make_table, metadata, to_jsonable, validate, write_table
 
 from .camera import Camera, Workspace, expose
 from .optics import Optics, PSFStack, build_psf_stack, check_sampling, patch_size, sample_pixel_size, size_transfer
 
-__all__ = ["render_frames", "expected_frames", "render_movie", "frame_interval_of"]
+__all__ = ["render_frames", "expected_frames", "render_movie", "frame_interval_of", "localisation_crlb"]
 
 _CHUNK_BYTES = 48e6
 # Largest patch side rendered with wave optics (pixels). Particles that would need
@@ -483,6 +483,30 @@ def expected_frames(table: pd.DataFrame, shape=(256, 256), optics: Optics | None
     scene = _Scene(table, shape, optics, camera, focal_plane, motion_blur_substeps, radius, brightfield, scatter_phase)
     for idx in scene.groups:
         yield scene.expected(idx)[0]
+
+
+def localisation_crlb(camera: Camera, x_px: float, y_px: float, shape=(40, 40), optics: Optics | None = None,
+                      step: float = 1e-3) -> float:
+    """Cramer-Rao bound on x (px) of one in-focus particle rendered at (x_px, y_px), px.
+
+    Exact for the renderer's own expected image: the Fisher information of
+    (x, y, amplitude, background) under Poisson photo-electrons plus Gaussian
+    read noise (variance ``mu + read_noise^2`` per pixel), with the image's
+    derivatives by central differences of ``step`` px.
+    """
+    optics = optics or Optics()
+    px = sample_pixel_size(optics, camera.pixel_pitch)
+
+    def mu_e(x, y):
+        tt = make_table([0], [0.0], [0], [x * px], [y * px], [0.0], meta={"frame_interval": 0.1})
+        return next(expected_frames(tt, shape, optics, camera)) * camera.quantum_efficiency
+
+    m = mu_e(x_px, y_px)
+    J = np.stack([((mu_e(x_px + step, y_px) - mu_e(x_px - step, y_px)) / (2 * step)).ravel(),
+                  ((mu_e(x_px, y_px + step) - mu_e(x_px, y_px - step)) / (2 * step)).ravel(),
+                  (m - camera.background * camera.quantum_efficiency).ravel(), np.ones(m.size)], 1)
+    fisher = J.T @ (J / (m + camera.read_noise ** 2).ravel()[:, None])
+    return float(np.sqrt(np.linalg.inv(fisher)[0, 0]))
 
 
 def _tiff_metadata(pixel: float, frame_interval: float, info: dict) -> dict:
