@@ -25,6 +25,9 @@ COMMANDS = {
     "study": (None, "verification studies of the simulator (see 'ptrack study --help')"),
     "render": ("ptrack.commands.render", "render a trajectories table as a synthetic microscope movie"),
     "render-calibration": ("ptrack.commands.render_calibration", "render a defocus calibration stack"),
+    "sweep": ("ptrack.commands.sweep_cmd", "run a grid of scenes (--set KEY=V1,V2 ...) as dask tasks, one summary table"),
+    "compare": ("ptrack.commands.compare_cmd", "compare trajectories tables (experiment vs simulation): MSD, D, van Hove, drift"),
+    "twin": ("ptrack.commands.twin_cmd", "a movie's simulated twin: infer parameters, simulate, render, track, compare"),
 }
 
 # study name -> (module, one-line help)
