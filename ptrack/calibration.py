@@ -34,7 +34,7 @@ from .errors import UserError, check_positive, require_file
 
 _REFINE_SCALE = 1 / 1.2    # refine only particles whose 95 % light discs overlap (see build_calibration)
 __all__ = ["Calibration", "read_calib_z", "build_calibration", "load_calibration", "prepare_gdpt", "check_pixel_size",
-           "detect_blobs", "match_templates", "locate_3d"]
+           "detect_blobs", "match_templates", "locate_3d", "locate_frame_3d"]
 
 
 @dataclass
@@ -1175,3 +1175,42 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
         T = tmpl[h["page"]].shape[0]
         out["edge"].append(bool(h["top"] < pad or h["left"] < pad or h["top"] + T > pad + H or h["left"] + T > pad + W))
     return pd.DataFrame(out)
+
+
+def locate_frame_3d(raw, calib: Calibration, brightfield: bool = False, background="spatial", snr: float = 6.0,
+                    cm_min: float = 0.5, gain: float = 1.0, offset: float = 0.0, read_noise: float = 0.0,
+                    **options) -> pd.DataFrame:
+    """Particles and their heights in one raw camera frame: the whole GDPT front end behind one call.
+
+    Prepares the frame as the calibration's templates were made
+    (:func:`prepare_gdpt`) and matches the templates (:func:`locate_3d`).
+
+    Parameters
+    ----------
+    raw : 2D array
+        Camera frame (ADU).
+    calib : Calibration
+    brightfield : bool
+        Dark particles on a bright field (must match the calibration).
+    background : "spatial", "none" or 2D array
+        Background handling; an array is a precomputed background (for
+        brightfield already inverted, as :func:`ptrack.preprocess.prepare`).
+    snr : float
+        Detection threshold (units of the smoothed noise).
+    cm_min : float
+        Smallest accepted correlation (GDPT's Cm_min).
+    gain, offset, read_noise : float
+        Camera model (ADU per photon, ADU, photons rms); accepted for the
+        pipeline's uniform call; template matching is normalised, so they
+        do not change z.
+    **options
+        Passed to :func:`locate_3d`.
+
+    Returns
+    -------
+    pandas.DataFrame
+        ``x_px``, ``y_px`` (px), ``z`` (m), ``cm``, ``mass`` and the
+        diagnostic columns of :func:`locate_3d` (``chi2``, ``edge``...).
+    """
+    img = prepare_gdpt(raw, calib, brightfield=brightfield, background=background)
+    return locate_3d(img, calib, snr=snr, cm_min=cm_min, **options)
