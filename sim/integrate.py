@@ -58,24 +58,9 @@ log = logging.getLogger("sim.integrate")
 
 OVERDAMPED_RATIO = 1.0e4  # "auto" uses overdamped BD when the step is at least this many m/gamma
 
-try:
-    from ptrack.wall import (parallel_ratio_nb, perpendicular_ratio_derivative_nb,  # noqa: F401
-                             perpendicular_ratio_nb)
-    HAVE_WALL = True
-except ImportError:  # pragma: no cover - only while ptrack.wall is being written
-    HAVE_WALL = False
-
-    @njit(cache=True)
-    def parallel_ratio_nb(h):
-        return 1.0
-
-    @njit(cache=True)
-    def perpendicular_ratio_nb(h):
-        return 1.0
-
-    @njit(cache=True)
-    def perpendicular_ratio_derivative_nb(h):
-        return 0.0
+# near-wall mobility ratios: the one implementation, in ptrack.wall (no fallback: a broken
+# ptrack.wall must fail the tests, not make them skip)
+from ptrack.wall import parallel_ratio_nb, perpendicular_ratio_derivative_nb, perpendicular_ratio_nb  # noqa: E402
 
 
 # --------------------------------------------------------------------------- helpers
@@ -492,9 +477,6 @@ def choose_integrator(scene, state, fconst) -> IntegratorChoice:
     if spec.hindered_mobility and kind != "overdamped":
         raise UserError(f"integrator.hindered_mobility needs the overdamped integrator, not {kind!r}",
                         'set kind = "overdamped" or "auto"')
-    if spec.hindered_mobility and not HAVE_WALL:
-        raise UserError("near-wall hindered mobility is not available (ptrack.wall missing)",
-                        "set integrator.hindered_mobility = false")
     phi = spec.phi if kind == "trapezoidal" else 0.0
     if kind == "trapezoidal" and spec.kind == "auto" and phi == 0.0:
         phi = 0.5

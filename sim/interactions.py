@@ -71,7 +71,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ptrack.errors import UserError
-from sim.scene import _num  # one validator for every scene key
+from sim.validate import missing as _missing, number as _num  # one validator for every scene key
 from sim.forces.contact import CONTACT_HOOKE, CONTACT_NONE, CONTACT_POWER, hooke_params, power_params
 from sim.forces.nearfield import NF_NONE, NF_SEED, NF_YUKAWA, yukawa_prefactor
 
@@ -293,10 +293,6 @@ def parse_interactions(raw: dict, scene=None) -> Interactions:
     if scene is not None and it.any_pair_force:
         _check_box(it, scene)
     return it
-
-
-def _missing(sec, key):
-    raise UserError(f"scene lacks {sec}.{key}", f"give {sec}.{key} (SI units)")
 
 
 def _check_box(it: Interactions, scene) -> None:

@@ -64,16 +64,16 @@ Pair-interaction sections (``contact``, ``bonding``, ``friction``,
 ``sim.interactions.parse_interactions(raw, scene)`` and stored in
 :attr:`Scene.interactions` (``None`` when the file has none of them).
 
-For the DEM engine: :func:`build_state` turns a scene into a :class:`State`
-of contiguous float64 arrays (radius, mass, charge, Stokes gamma, positions,
-velocities); :func:`constant_force` gives the per-particle constant external
-force (Lorentz q E + gravity with buoyancy); :attr:`Boundaries.modes` encodes
-the boundaries as integers for numba kernels.
+This module is the schema only: every key is checked by :mod:`sim.validate`.
+The physics of a scene (:func:`build_state`, :func:`constant_force`,
+:func:`particle_charge`, :class:`State`) lives in :mod:`sim.state` and is
+re-exported here for old callers. :attr:`Boundaries.modes` encodes the
+boundaries as integers (:data:`OPEN`, :data:`PERIODIC`, :data:`WALL`) for
+numba kernels.
 """
 from __future__ import annotations
 
 import dataclasses
-import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -82,6 +82,8 @@ import numpy as np
 
 from ptrack.constants import BOLTZMANN, STANDARD_GRAVITY, VACUUM_PERMITTIVITY
 from ptrack.errors import UserError, require_file
+from sim.state import State, build_state, constant_force, debye_length_of, particle_charge  # noqa: F401 (re-export)
+from sim.validate import boolean, choice, integer, number, section, vec3
 
 INTERACTION_SECTIONS = ("contact", "bonding", "friction", "nearfield", "walls")
 BOUNDARY_KINDS = ("open", "periodic", "wall")
@@ -213,74 +215,6 @@ class Scene:
         return d
 
 
-# --------------------------------------------------------------------------- validation helpers
-def _where(section: str, key: str) -> str:
-    return f"{section}.{key}" if section else key
-
-
-def _num(section, key, v, *, positive=False, nonneg=False, lo=None, hi=None):
-    name = _where(section, key)
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise UserError(f"scene key {name} = {v!r} is not a number", f"give {name} as a number in SI units")
-    v = float(v)
-    if not math.isfinite(v):
-        raise UserError(f"scene key {name} = {v!r} is not finite", f"give a finite {name}")
-    if positive and v <= 0:
-        raise UserError(f"scene key {name} = {v!r} must be positive", f"give a positive {name}")
-    if nonneg and v < 0:
-        raise UserError(f"scene key {name} = {v!r} must be non-negative", f"give {name} >= 0")
-    if lo is not None and v < lo or hi is not None and v > hi:
-        raise UserError(f"scene key {name} = {v!r} is out of range", f"give {name} in [{lo}, {hi}]")
-    return v
-
-
-def _int(section, key, v, *, positive=False, nonneg=False):
-    name = _where(section, key)
-    if isinstance(v, bool) or not isinstance(v, int):
-        raise UserError(f"scene key {name} = {v!r} is not an integer", f"give {name} as a whole number")
-    if positive and v <= 0:
-        raise UserError(f"scene key {name} = {v!r} must be positive", f"give a positive {name}")
-    if nonneg and v < 0:
-        raise UserError(f"scene key {name} = {v!r} must be non-negative", f"give {name} >= 0")
-    return int(v)
-
-
-def _bool(section, key, v):
-    if not isinstance(v, bool):
-        raise UserError(f"scene key {_where(section, key)} = {v!r} is not true/false",
-                        f"give {_where(section, key)} = true or false")
-    return v
-
-
-def _choice(section, key, v, choices):
-    if not isinstance(v, str) or v not in choices:
-        raise UserError(f"scene key {_where(section, key)} = {v!r} is not allowed",
-                        f"choose one of: {', '.join(repr(c) for c in choices)}")
-    return v
-
-
-def _vec3(section, key, v, *, positive=False):
-    name = _where(section, key)
-    if not isinstance(v, (list, tuple)) or len(v) != 3:
-        raise UserError(f"scene key {name} = {v!r} is not a 3-vector", f"give {name} as [x, y, z] in SI units")
-    return tuple(_num(section, f"{key}[{i}]", c, positive=positive) for i, c in enumerate(v))
-
-
-def _section(raw: dict, name: str, allowed: tuple[str, ...], required: bool = False) -> dict:
-    if name not in raw:
-        if required:
-            raise UserError(f"scene has no [{name}] section", f"add a [{name}] section")
-        return {}
-    sec = raw[name]
-    if not isinstance(sec, dict):
-        raise UserError(f"scene key {name} = {sec!r} is not a section", f"write it as a [{name}] table")
-    unknown = [k for k in sec if k not in allowed]
-    if unknown:
-        raise UserError(f"unknown key {name}.{unknown[0]} in the scene",
-                        f"allowed keys in [{name}]: {', '.join(allowed)}")
-    return sec
-
-
 # --------------------------------------------------------------------------- parsing
 def scene_from_dict(raw: dict, source: str | None = None) -> Scene:
     """Validate a scene given as a (TOML-like) dict; see the module docstring for the keys.
@@ -297,38 +231,38 @@ def scene_from_dict(raw: dict, source: str | None = None) -> Scene:
     unknown = [k for k in raw if k not in top_allowed]
     if unknown:
         raise UserError(f"unknown scene key or section {unknown[0]!r}", f"allowed: {', '.join(top_allowed)}")
-    seed = _int("", "seed", raw.get("seed", 0), nonneg=True)
+    seed = integer("", "seed", raw.get("seed", 0), nonneg=True)
 
-    s = _section(raw, "particles", ("count", "radius", "radius_variation", "density", "charge",
+    s = section(raw, "particles", ("count", "radius", "radius_variation", "density", "charge",
                                     "charge_per_mass", "zeta_potential", "initial_velocity"), required=True)
     for k in ("count", "radius", "density"):
         if k not in s:
             raise UserError(f"scene lacks particles.{k}", f"give particles.{k} (SI units)")
     p = Particles(
-        count=_int("particles", "count", s["count"], positive=True),
-        radius=_num("particles", "radius", s["radius"], positive=True),
-        density=_num("particles", "density", s["density"], positive=True),
-        radius_variation=_num("particles", "radius_variation", s.get("radius_variation", 0.0), lo=0.0, hi=0.99),
-        charge=None if "charge" not in s else _num("particles", "charge", s["charge"]),
-        charge_per_mass=None if "charge_per_mass" not in s else _num("particles", "charge_per_mass", s["charge_per_mass"]),
-        zeta_potential=None if "zeta_potential" not in s else _num("particles", "zeta_potential", s["zeta_potential"]),
-        initial_velocity=_choice("particles", "initial_velocity", s.get("initial_velocity", "zero"), INITIAL_VELOCITIES),
+        count=integer("particles", "count", s["count"], positive=True),
+        radius=number("particles", "radius", s["radius"], positive=True),
+        density=number("particles", "density", s["density"], positive=True),
+        radius_variation=number("particles", "radius_variation", s.get("radius_variation", 0.0), lo=0.0, hi=0.99),
+        charge=None if "charge" not in s else number("particles", "charge", s["charge"]),
+        charge_per_mass=None if "charge_per_mass" not in s else number("particles", "charge_per_mass", s["charge_per_mass"]),
+        zeta_potential=None if "zeta_potential" not in s else number("particles", "zeta_potential", s["zeta_potential"]),
+        initial_velocity=choice("particles", "initial_velocity", s.get("initial_velocity", "zero"), INITIAL_VELOCITIES),
     )
     given = [k for k in ("charge", "charge_per_mass", "zeta_potential") if k in s]
     if len(given) > 1:
         raise UserError(f"scene gives both particles.{given[0]} and particles.{given[1]}",
                         "define the charge once: charge (C), charge_per_mass (C/kg) or zeta_potential (V)")
 
-    s = _section(raw, "fluid", ("density", "viscosity", "temperature", "velocity", "relative_permittivity",
+    s = section(raw, "fluid", ("density", "viscosity", "temperature", "velocity", "relative_permittivity",
                                 "debye_length", "debye_ratio"))
     f = Fluid(
-        density=_num("fluid", "density", s.get("density", 1000.0), nonneg=True),
-        viscosity=_num("fluid", "viscosity", s.get("viscosity", 1e-3), positive=True),
-        temperature=_num("fluid", "temperature", s.get("temperature", 293.0), nonneg=True),
-        velocity=_vec3("fluid", "velocity", s.get("velocity", [0.0, 0.0, 0.0])),
-        relative_permittivity=_num("fluid", "relative_permittivity", s.get("relative_permittivity", 80.0), positive=True),
-        debye_length=None if "debye_length" not in s else _num("fluid", "debye_length", s["debye_length"], positive=True),
-        debye_ratio=None if "debye_ratio" not in s else _num("fluid", "debye_ratio", s["debye_ratio"], positive=True),
+        density=number("fluid", "density", s.get("density", 1000.0), nonneg=True),
+        viscosity=number("fluid", "viscosity", s.get("viscosity", 1e-3), positive=True),
+        temperature=number("fluid", "temperature", s.get("temperature", 293.0), nonneg=True),
+        velocity=vec3("fluid", "velocity", s.get("velocity", [0.0, 0.0, 0.0])),
+        relative_permittivity=number("fluid", "relative_permittivity", s.get("relative_permittivity", 80.0), positive=True),
+        debye_length=None if "debye_length" not in s else number("fluid", "debye_length", s["debye_length"], positive=True),
+        debye_ratio=None if "debye_ratio" not in s else number("fluid", "debye_ratio", s["debye_ratio"], positive=True),
     )
     if f.debye_length is not None and f.debye_ratio is not None:
         raise UserError("scene gives both fluid.debye_length and fluid.debye_ratio",
@@ -337,41 +271,41 @@ def scene_from_dict(raw: dict, source: str | None = None) -> Scene:
         raise UserError("particles.zeta_potential needs the Debye length",
                         "add fluid.debye_length (m) or fluid.debye_ratio (R / lambda_D)")
 
-    s = _section(raw, "fields", ("E", "B"))
-    fl = Fields(E=_vec3("fields", "E", s.get("E", [0.0, 0.0, 0.0])), B=_vec3("fields", "B", s.get("B", [0.0, 0.0, 0.0])))
+    s = section(raw, "fields", ("E", "B"))
+    fl = Fields(E=vec3("fields", "E", s.get("E", [0.0, 0.0, 0.0])), B=vec3("fields", "B", s.get("B", [0.0, 0.0, 0.0])))
 
-    s = _section(raw, "gravity", ("enabled", "g", "buoyancy"))
-    g = Gravity(enabled=_bool("gravity", "enabled", s.get("enabled", True)),
-                g=_vec3("gravity", "g", s.get("g", [0.0, 0.0, -STANDARD_GRAVITY])),
-                buoyancy=_bool("gravity", "buoyancy", s.get("buoyancy", True)))
+    s = section(raw, "gravity", ("enabled", "g", "buoyancy"))
+    g = Gravity(enabled=boolean("gravity", "enabled", s.get("enabled", True)),
+                g=vec3("gravity", "g", s.get("g", [0.0, 0.0, -STANDARD_GRAVITY])),
+                buoyancy=boolean("gravity", "buoyancy", s.get("buoyancy", True)))
 
-    s = _section(raw, "domain", ("size", "placement_z"), required=True)
+    s = section(raw, "domain", ("size", "placement_z"), required=True)
     if "size" not in s:
         raise UserError("scene lacks domain.size", "give domain.size = [Lx, Ly, Lz] in m")
-    size = _vec3("domain", "size", s["size"], positive=True)
+    size = vec3("domain", "size", s["size"], positive=True)
     pz = None
     if "placement_z" in s:
         v = s["placement_z"]
         if not isinstance(v, (list, tuple)) or len(v) != 2:
             raise UserError(f"scene key domain.placement_z = {v!r} is not [z_min, z_max]", "give two heights in m")
-        pz = (_num("domain", "placement_z[0]", v[0], nonneg=True), _num("domain", "placement_z[1]", v[1], positive=True))
+        pz = (number("domain", "placement_z[0]", v[0], nonneg=True), number("domain", "placement_z[1]", v[1], positive=True))
         if not pz[0] < pz[1] <= size[2]:
             raise UserError(f"scene key domain.placement_z = {list(v)!r} is not inside [0, Lz = {size[2]}]",
                             "give 0 <= z_min < z_max <= Lz")
     d = Domain(size=size, placement_z=pz)
 
-    s = _section(raw, "boundaries", ("x", "y", "bottom_wall", "top"))
-    b = Boundaries(x=_choice("boundaries", "x", s.get("x", "open"), BOUNDARY_KINDS),
-                   y=_choice("boundaries", "y", s.get("y", "open"), BOUNDARY_KINDS),
-                   bottom_wall=_bool("boundaries", "bottom_wall", s.get("bottom_wall", True)),
-                   top=_choice("boundaries", "top", s.get("top", "open"), ("open", "wall")))
+    s = section(raw, "boundaries", ("x", "y", "bottom_wall", "top"))
+    b = Boundaries(x=choice("boundaries", "x", s.get("x", "open"), BOUNDARY_KINDS),
+                   y=choice("boundaries", "y", s.get("y", "open"), BOUNDARY_KINDS),
+                   bottom_wall=boolean("boundaries", "bottom_wall", s.get("bottom_wall", True)),
+                   top=choice("boundaries", "top", s.get("top", "open"), ("open", "wall")))
 
-    s = _section(raw, "time", ("dt", "final", "output_interval"), required=True)
+    s = section(raw, "time", ("dt", "final", "output_interval"), required=True)
     for k in ("final", "output_interval"):
         if k not in s:
             raise UserError(f"scene lacks time.{k}", f"give time.{k} in s")
-    final = _num("time", "final", s["final"], positive=True)
-    out = _num("time", "output_interval", s["output_interval"], positive=True)
+    final = number("time", "final", s["final"], positive=True)
+    out = number("time", "output_interval", s["output_interval"], positive=True)
     if out > final * (1 + 1e-12):
         raise UserError(f"scene key time.output_interval = {out!r} exceeds time.final = {final!r}",
                         "give an output interval no longer than the run")
@@ -381,18 +315,18 @@ def scene_from_dict(raw: dict, source: str | None = None) -> Scene:
     else:
         if isinstance(dt_raw, str):
             raise UserError(f"scene key time.dt = {dt_raw!r} is not allowed", 'give "auto" or a positive number (s)')
-        dt = _num("time", "dt", dt_raw, positive=True)
+        dt = number("time", "dt", dt_raw, positive=True)
         if dt > out * (1 + 1e-12):
             raise UserError(f"scene key time.dt = {dt!r} exceeds time.output_interval = {out!r}",
                             "give dt <= output_interval")
     t = TimeSpec(final=final, output_interval=out, dt=dt)
 
-    s = _section(raw, "integrator", ("kind", "phi", "tolerance", "max_iterations", "hindered_mobility"))
-    it = IntegratorSpec(kind=_choice("integrator", "kind", s.get("kind", "auto"), INTEGRATORS),
-                        phi=_num("integrator", "phi", s.get("phi", 0.0), lo=0.0, hi=1.0),
-                        tolerance=_num("integrator", "tolerance", s.get("tolerance", 1e-12), positive=True),
-                        max_iterations=_int("integrator", "max_iterations", s.get("max_iterations", 100), positive=True),
-                        hindered_mobility=_bool("integrator", "hindered_mobility", s.get("hindered_mobility", False)))
+    s = section(raw, "integrator", ("kind", "phi", "tolerance", "max_iterations", "hindered_mobility"))
+    it = IntegratorSpec(kind=choice("integrator", "kind", s.get("kind", "auto"), INTEGRATORS),
+                        phi=number("integrator", "phi", s.get("phi", 0.0), lo=0.0, hi=1.0),
+                        tolerance=number("integrator", "tolerance", s.get("tolerance", 1e-12), positive=True),
+                        max_iterations=integer("integrator", "max_iterations", s.get("max_iterations", 100), positive=True),
+                        hindered_mobility=boolean("integrator", "hindered_mobility", s.get("hindered_mobility", False)))
     if it.hindered_mobility and not b.bottom_wall:
         raise UserError("integrator.hindered_mobility = true needs boundaries.bottom_wall = true",
                         "switch the substrate on or the hindered mobility off")
@@ -407,13 +341,7 @@ def scene_from_dict(raw: dict, source: str | None = None) -> Scene:
     raw_int = {k: raw[k] for k in INTERACTION_SECTIONS if k in raw}
     if raw_int:
         scene.raw_interactions = raw_int
-        try:
-            from sim.interactions import parse_interactions
-        except ModuleNotFoundError as exc:
-            if exc.name and exc.name.startswith("sim.interactions"):
-                raise UserError(f"pair interactions not available (the scene has [{', '.join(raw_int)}])",
-                                "remove those sections or install a build with sim.interactions")
-            raise
+        from sim.interactions import parse_interactions  # one direction: scene -> interactions -> validate
         scene.interactions = parse_interactions(raw_int, scene)
     return scene
 
@@ -433,122 +361,6 @@ def load_scene(path) -> Scene:
     except tomllib.TOMLDecodeError as exc:
         raise UserError(f"scene file {path} is not valid TOML: {exc}", "fix the TOML syntax")
     return scene_from_dict(raw, source=str(path))
-
-
-# --------------------------------------------------------------------------- state
-@dataclass
-class State:
-    """Per-particle arrays (contiguous float64, SI) built from a scene by :func:`build_state`.
-
-    Attributes
-    ----------
-    radius, mass, charge, gamma : (N,) arrays
-        m, kg, C, and the Stokes drag coefficient 6 pi mu R (kg/s).
-    pos, vel : (N, 3) arrays
-        Positions (m) and velocities (m/s).
-    t : float
-        Time (s).
-    """
-    radius: np.ndarray
-    mass: np.ndarray
-    charge: np.ndarray
-    gamma: np.ndarray
-    pos: np.ndarray
-    vel: np.ndarray
-    t: float = 0.0
-
-    @property
-    def n(self) -> int:
-        return len(self.radius)
-
-    def copy(self) -> "State":
-        return State(*(np.array(getattr(self, f.name), copy=True) if isinstance(getattr(self, f.name), np.ndarray)
-                       else getattr(self, f.name) for f in dataclasses.fields(self)))
-
-
-def debye_length_of(scene: Scene, radius):
-    """Debye length (m) for each radius: fluid.debye_length, or radius / fluid.debye_ratio."""
-    if scene.fluid.debye_length is not None:
-        return np.full_like(np.asarray(radius, dtype=float), scene.fluid.debye_length)
-    if scene.fluid.debye_ratio is not None:
-        return np.asarray(radius, dtype=float) / scene.fluid.debye_ratio
-    return None
-
-
-def particle_charge(scene: Scene, radius: np.ndarray, mass: np.ndarray) -> np.ndarray:
-    """Charge per particle (C): given directly, from q/m, or from the zeta potential by eq. 3.33.
-
-    Eq. 3.33 is evaluated by :func:`sim.electrokinetics.colloid_charge`, i.e.
-    q = 4 pi eps_r eps0 zeta R f(R / lambda_D) with Henry's exact function f.
-    """
-    p = scene.particles
-    if p.charge is not None:
-        return np.full(len(radius), p.charge)
-    if p.charge_per_mass is not None:
-        return p.charge_per_mass * mass
-    if p.zeta_potential is not None:
-        from sim.electrokinetics import colloid_charge
-        lam = debye_length_of(scene, radius)
-        return np.asarray(colloid_charge(p.zeta_potential, radius, lam, scene.fluid.relative_permittivity),
-                          dtype=np.float64) * np.ones(len(radius))
-    return np.zeros(len(radius))
-
-
-def constant_force(scene: Scene, state: State) -> np.ndarray:
-    """Velocity-independent external force per particle (N), shape (N, 3), contiguous.
-
-    q E (Lorentz, electric part) plus gravity with buoyancy, (m - rho_f V) g,
-    if gravity is enabled (buoyancy can be switched off in the scene).
-    """
-    from sim.forces.body import gravity_buoyancy_force
-    f = state.charge[:, None] * np.asarray(scene.fields.E, dtype=np.float64)[None, :]
-    if scene.gravity.enabled:
-        rho_f = scene.fluid.density if scene.gravity.buoyancy else 0.0
-        f = f + gravity_buoyancy_force(state.mass, state.radius, rho_f, scene.gravity.g)
-    return np.ascontiguousarray(f, dtype=np.float64)
-
-
-def build_state(scene: Scene, seed=None) -> State:
-    """Particles of a scene: radii (eq. 3.39), masses, charges, positions and velocities.
-
-    Positions come from :func:`sim.placement.place_particles` (sequential random
-    non-overlapping placement with a cell hash). Initial velocities per
-    ``particles.initial_velocity``: ``zero`` (at rest relative to the fluid,
-    i.e. v = v_f); ``terminal``/``henry``: the
-    Stokes terminal velocity v_f + F_const / gamma (with the eq. 3.33 charge
-    this is the Henry velocity, as the seed initialises its deposition runs);
-    ``thermal``: Maxwell-Boltzmann, each component N(0, kB T / m).
-
-    Parameters
-    ----------
-    scene : Scene
-    seed : int or numpy.random.Generator, optional
-        Defaults to ``scene.seed``.
-    """
-    from sim.forces.drag import stokes_gamma
-    from sim.placement import place_particles
-
-    rng = np.random.default_rng(scene.seed if seed is None else seed)
-    p = scene.particles
-    lo = (0.0, 0.0, 0.0)
-    hi = tuple(scene.domain.size)
-    if scene.domain.placement_z is not None:
-        lo = (0.0, 0.0, scene.domain.placement_z[0])
-        hi = (hi[0], hi[1], scene.domain.placement_z[1])
-    pos, radius = place_particles(p.count, p.radius, p.radius_variation, lo, hi, seed=rng)
-    mass = p.density * 4.0 / 3.0 * np.pi * radius ** 3
-    gamma = stokes_gamma(radius, scene.fluid.viscosity)
-    charge = particle_charge(scene, radius, mass)
-    st = State(radius=radius, mass=mass, charge=np.ascontiguousarray(charge, dtype=np.float64), gamma=gamma,
-               pos=pos, vel=np.zeros((p.count, 3)))
-    vf = np.asarray(scene.fluid.velocity, dtype=np.float64)
-    if p.initial_velocity in ("terminal", "henry"):
-        st.vel = np.ascontiguousarray(vf[None, :] + constant_force(scene, st) / gamma[:, None])
-    elif p.initial_velocity == "thermal":
-        st.vel = np.ascontiguousarray(vf[None, :] + rng.standard_normal((p.count, 3)) * np.sqrt(scene.kT / mass)[:, None])
-    else:
-        st.vel = np.ascontiguousarray(np.broadcast_to(vf, (p.count, 3)).copy())
-    return st
 
 
 __all__ = ["Scene", "Particles", "Fluid", "Fields", "Gravity", "Domain", "Boundaries", "TimeSpec",

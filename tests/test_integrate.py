@@ -190,9 +190,7 @@ def test_nan_stops_run_and_keeps_last_good_state(tmp_path, monkeypatch):
 
 
 def test_wall_tables_match_direct_evaluation():
-    from sim.integrate import HAVE_WALL, _wall_lookup, wall_tables
-    if not HAVE_WALL:
-        pytest.skip("ptrack.wall not available")
+    from sim.integrate import _wall_lookup, wall_tables
     from ptrack.wall import parallel_ratio_nb, perpendicular_ratio_derivative_nb, perpendicular_ratio_nb
     tabs = wall_tables()
     for x in np.concatenate([1 + np.logspace(-6, 2, 57), [150.0, 1000.0]]):
@@ -205,9 +203,6 @@ def test_hindered_overdamped_keeps_uniform_heights():
     """With the kT dM/dz drift, a uniform height distribution between wall and top stays uniform."""
     from scipy import stats
 
-    from sim.integrate import HAVE_WALL
-    if not HAVE_WALL:
-        pytest.skip("ptrack.wall not available")
     a = 1e-6
     n = 6000
     top = 3 * a  # centre heights h in [a, 3a - a]... top wall at z = 3a: centres in [a, 2a]
