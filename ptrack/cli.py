@@ -2,8 +2,19 @@
 
 Each subcommand lives in its own module exposing ``add_arguments(parser)`` and
 ``run(args) -> int``; it is imported only when invoked, so ``ptrack --help``
-and small commands start fast. A :class:`~ptrack.errors.UserError` raised
-anywhere becomes one line on stderr and exit status 2.
+and small commands start fast.
+
+What every command gets here, once:
+
+- negative numbers in scientific notation after a space (``--calib-z0 -3e-6``)
+  are values (:func:`ptrack.options.normalise_negative_numbers`);
+- every numeric option is range-checked against :mod:`ptrack.options` after
+  parsing and before the command runs (NaN and infinity refused);
+- a :class:`~ptrack.errors.UserError` raised anywhere, an argparse usage error,
+  and an OSError the user can act on (full disk, permission denied, read-only
+  file system) become one line ``error: cause; fix`` on stderr, exit status 2;
+- Ctrl-C becomes one line and exit status 130, also when it arrives inside a
+  compiled (numba) kernel and surfaces as a SystemError.
 """
 from __future__ import annotations
 
@@ -12,7 +23,8 @@ import importlib
 import sys
 
 from . import __version__
-from .errors import EXIT_USER_ERROR, UserError
+from .errors import EXIT_INTERRUPTED, EXIT_USER_ERROR, UserError, os_error_message
+from .options import OptionParser, check_namespace, normalise_negative_numbers
 
 # name -> (module, one-line help)
 COMMANDS = {
@@ -53,10 +65,35 @@ def _top_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _sub_parser(prog: str, module, help_text: str) -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=prog, description=(module.__doc__ or help_text).strip().split("\n\n")[0])
+def _sub_parser(prog: str, module, help_text: str) -> OptionParser:
+    p = OptionParser(prog=prog, description=(module.__doc__ or help_text).strip().split("\n\n")[0])
     module.add_arguments(p)
     return p
+
+
+def command_parser(name: str) -> tuple[str, OptionParser]:
+    """(command key, parser) of ``name`` ("track", "study deposition"): for the CLI, tests and docs."""
+    if name.startswith("study "):
+        modname, help_text = STUDIES[name.split(" ", 1)[1]]
+    else:
+        modname, help_text = COMMANDS[name]
+    return name, _sub_parser(f"ptrack {name}", _load(modname, f"ptrack {name}"), help_text)
+
+
+def _interrupted(exc: BaseException) -> bool:
+    """True if ``exc`` is, or was raised while handling, a KeyboardInterrupt.
+
+    numba reports a Ctrl-C that arrives inside a compiled kernel as
+    ``SystemError: CPUDispatcher(...) returned a result with an exception set``
+    whose cause is the KeyboardInterrupt.
+    """
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
 
 
 def _load(modname: str, what: str):
@@ -96,14 +133,36 @@ def main(argv: list[str] | None = None) -> int:
             modname, help_text = COMMANDS[name]
             prog = f"ptrack {name}"
         module = _load(modname, prog)
-        args = _sub_parser(prog, module, help_text).parse_args(rest)
+        parser = _sub_parser(prog, module, help_text)
+        args = parser.parse_args(normalise_negative_numbers(rest, parser.option_strings()))
+        check_namespace(prog[len("ptrack "):], args, parser.numeric_actions)
         return int(module.run(args) or 0)
     except UserError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return EXIT_USER_ERROR
+        return _fail(str(exc))
     except KeyboardInterrupt:
-        print("error: interrupted", file=sys.stderr)
-        return 130
+        return _fail("interrupted (Ctrl-C); completed output files are kept, none is half-written", EXIT_INTERRUPTED)
+    except SystemExit as exc:  # --help, --version of a subcommand
+        if exc.code in (None, 0):
+            return 0
+        raise
+    except OSError as exc:  # the last resort for the environment: full disk, permissions, read-only
+        msg = os_error_message(exc)
+        if msg is None:
+            raise
+        return _fail("; ".join(msg))
+    except SystemError as exc:
+        if _interrupted(exc):
+            return _fail("interrupted (Ctrl-C); completed output files are kept, none is half-written",
+                         EXIT_INTERRUPTED)
+        raise
+
+
+def _fail(message: str, code: int = EXIT_USER_ERROR) -> int:
+    """Print ``error: message`` as one line on stderr; return ``code``."""
+    line = " ".join(message.split())  # one line, whatever the message holds
+    sys.stdout.flush()
+    print(f"error: {line}", file=sys.stderr)
+    return code
 
 
 if __name__ == "__main__":
