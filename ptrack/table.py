@@ -210,8 +210,10 @@ def read_table(path, validate_table: bool = True) -> pd.DataFrame:
         else:
             import pyarrow.parquet as pq
 
-            table = pq.read_table(path)
-            raw = (table.schema.metadata or {}).get(META_KEY.encode())
+            pf = pq.ParquetFile(path)
+            table = pf.read()
+            # the footer's key-value metadata: TrajectoryWriter adds "incomplete" there at close
+            raw = (pf.metadata.metadata or {}).get(META_KEY.encode()) or (table.schema.metadata or {}).get(META_KEY.encode())
             if raw:
                 meta = json.loads(raw)
             df = table.to_pandas()
@@ -229,10 +231,17 @@ class TrajectoryWriter:
 
     For long simulations and movies: the caller appends one chunk per output
     interval and never holds all frames in memory. The file is written as
-    ``<path>.part`` and renamed to ``path`` by :meth:`close`. If the run fails,
-    ``close(failed=True)`` still finalises the frames written so far (so a
-    long run loses no work) under ``path`` and records the failure in the
-    metadata (key ``"incomplete"``).
+    ``<path>.part`` and renamed to ``path`` by :meth:`close`.
+
+    If the run fails for any other reason than the file itself (an error in
+    the simulation, Ctrl-C), ``close(failed=reason)`` still finalises the
+    frames written so far under ``path`` (so a long run loses no work), with
+    the reason in the metadata (key ``"incomplete"``, written into the Parquet
+    footer without reading the table back: memory stays bounded). If writing
+    the file itself fails (full disk, I/O error), the footer cannot be
+    written: the broken ``.part`` is removed, ``path`` keeps any previous
+    content, and the OSError is raised again by :meth:`close` (the CLI turns
+    it into one line). Never is a footer-less ``.part`` left behind.
 
     Parameters
     ----------
@@ -249,6 +258,8 @@ class TrajectoryWriter:
         self.meta = to_jsonable(dict(meta or {}))
         self._writer = None
         self._schema = None
+        self._meta_written: dict | None = None
+        self._broken: BaseException | None = None
         self.rows = 0
 
     def append(self, df: pd.DataFrame) -> None:
@@ -256,34 +267,62 @@ class TrajectoryWriter:
         import pyarrow as pa
         import pyarrow.parquet as pq
 
+        if self._broken is not None:
+            raise self._broken
         table = pa.Table.from_pandas(df, preserve_index=False)
         if self._writer is None:
             md = dict(table.schema.metadata or {})
             md.pop(b"pandas", None)
             meta = dict(self.meta)
             meta.setdefault("units", {c: u for c, u in UNITS.items() if c in df.columns})
+            self._meta_written = meta
             md[META_KEY.encode()] = json.dumps(meta).encode()
             self._schema = table.schema.with_metadata(md)
             self._writer = pq.ParquetWriter(str(self.tmp), self._schema)
         table = table.cast(self._schema)
-        self._writer.write_table(table)
+        try:
+            self._writer.write_table(table)
+        except BaseException as exc:
+            if isinstance(exc, OSError):  # the file itself failed: its footer can no longer be written
+                self._broken = exc
+            raise
         self.rows += len(df)
 
-    def close(self, failed: str | None = None) -> Path:
-        """Finalise the file. ``failed``: a reason recorded when the run stopped early."""
-        if self._writer is None:
-            return self.path
-        self._writer.close()
-        self._writer = None
-        if failed:
-            import pyarrow.parquet as pq
+    def _discard(self) -> None:
+        import contextlib
 
-            table = pq.read_table(str(self.tmp))
-            md = dict(table.schema.metadata or {})
-            meta = json.loads(md.get(META_KEY.encode(), b"{}"))
-            meta["incomplete"] = failed
-            md[META_KEY.encode()] = json.dumps(meta).encode()
-            pq.write_table(table.replace_schema_metadata(md), str(self.tmp))
+        with contextlib.suppress(Exception):
+            self._writer.close()
+        self._writer = None
+        with contextlib.suppress(FileNotFoundError):
+            self.tmp.unlink()
+
+    def close(self, failed: str | None = None) -> Path:
+        """Finalise the file. ``failed``: a reason recorded when the run stopped early.
+
+        Raises
+        ------
+        OSError
+            Writing the file failed (full disk, ...): nothing is left at
+            ``<path>.part``, and ``path`` is as before the run.
+        """
+        if self._writer is None:
+            if self._broken is not None:
+                raise self._broken
+            return self.path
+        if self._broken is not None:
+            self._discard()
+            raise self._broken
+        try:
+            if failed:
+                meta = dict(self._meta_written or {}, incomplete=failed)
+                self._writer.add_key_value_metadata({META_KEY: json.dumps(meta)})
+            self._writer.close()
+        except OSError as exc:
+            self._broken = exc
+            self._discard()
+            raise
+        self._writer = None
         self.tmp.replace(self.path)
         return self.path
 
@@ -293,6 +332,10 @@ class TrajectoryWriter:
     def __exit__(self, exc_type, exc, tb):
         if exc_type is None:
             self.close()
-        elif self._writer is not None:
-            self.close(failed=f"{exc_type.__name__}: {exc}")
+        elif self._writer is not None or self._broken is not None:
+            try:
+                self.close(failed=f"{exc_type.__name__}: {exc}")
+            except OSError:
+                if self._broken is not exc:
+                    raise
         return False

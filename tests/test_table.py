@@ -69,3 +69,56 @@ def test_streaming_writer_keeps_work_on_failure(tmp_path):
     back = read_table(path)
     assert len(back) == 15
     assert "blow-up" in back.attrs["ptrack"]["incomplete"]
+    assert back.attrs["ptrack"]["frame_interval"] == 0.1
+    assert not (tmp_path / "sim.parquet.part").exists()
+
+
+def test_streaming_writer_complete_table_is_not_marked(tmp_path):
+    df = _table()
+    with TrajectoryWriter(tmp_path / "ok.parquet", {"frame_interval": 0.1}) as w:
+        w.append(df)
+    back = read_table(tmp_path / "ok.parquet")
+    assert "incomplete" not in back.attrs["ptrack"] and len(back) == len(df)
+
+
+def test_streaming_writer_that_cannot_write_leaves_the_previous_file(tmp_path, monkeypatch):
+    """A write error (e.g. a full disk) in the file itself: no footer-less .part, previous table kept."""
+    import errno
+
+    import pyarrow.parquet as pq
+
+    df = _table()
+    path = tmp_path / "sim.parquet"
+    write_table(df[df.frame < 1], path)  # the previous run's table
+    before = path.read_bytes()
+    w = TrajectoryWriter(path, {})
+    w.append(df[df.frame < 2])
+    real = pq.ParquetWriter.write_table
+
+    def full(self, table, *a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(pq.ParquetWriter, "write_table", full)
+    with pytest.raises(OSError):
+        w.append(df[df.frame >= 2])
+    monkeypatch.setattr(pq.ParquetWriter, "write_table", real)
+    with pytest.raises(OSError):
+        w.close(failed="OSError: no space")
+    assert path.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sim.parquet"]
+
+
+def test_written_files_honour_the_umask(tmp_path):
+    import os
+    import stat
+
+    old = os.umask(0o022)
+    try:
+        write_table(_table(), tmp_path / "a.parquet")
+        write_table(_table(), tmp_path / "a.csv")
+        with TrajectoryWriter(tmp_path / "s.parquet") as w:
+            w.append(_table())
+        for name in ("a.parquet", "a.csv", "s.parquet"):
+            assert stat.S_IMODE((tmp_path / name).stat().st_mode) == 0o644, name
+    finally:
+        os.umask(old)
