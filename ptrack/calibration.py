@@ -147,23 +147,45 @@ def _page_centre(img, noise, signed: bool = False):
 
 
 def build_calibration(stack, z, pixel_size=None, template_size: int | None = None, brightfield: bool = False,
-                      source: str = "") -> Calibration:
-    """Templates from a calibration stack held in memory.
+                      source: str = "", max_beads: int | None = None, fine_step="auto") -> Calibration:
+    """Templates from a calibration stack held in memory (:mod:`ptrack.gdpt`).
+
+    Each page's background is estimated from its bead-free pixels, the
+    bead(s) are found and followed from page to page, each page's template
+    is cut to the extent of that page's image, several beads are registered
+    on their centres and averaged, pages where no bead is whole are rejected
+    (named in a warning and in ``info["rejected"]``), and coarse steps are
+    filled with templates interpolated between pages (``fine_step``).
 
     Parameters
     ----------
     stack : array (K, H, W)
-        One image of the calibration particle per height.
+        One image of the calibration bead(s) per height (crops or full frames).
     z : array (K,)
         Heights (m); pages are sorted by z.
     pixel_size : float, optional
         m per pixel.
     template_size : int, optional
-        Template side (px, made odd); default from the largest particle image.
+        Template side (px, made odd); default from each page's image.
     brightfield : bool
-        Invert the pages first (dark particles).
+        Invert the pages first (dark particles); templates are signed.
+    max_beads : int, optional
+        Use at most this many beads (the brightest).
+    fine_step : float, "auto" or None
+        Spacing (m) of the interpolated templates; "auto": steps over
+        0.2 um are divided into parts of 0.2 um or less; None: pages only.
+
+    Returns
+    -------
+    Calibration
+        ``info`` holds ``n_beads``, ``bead_xy`` (px), ``rejected``
+        ({page: reason}), ``page_z`` (heights of the pages used), ``n_sub``
+        (templates per page step) and, with several beads, ``bead_dz``
+        (each bead's pages read on the average, minus their height, m) and
+        ``z_error`` (m, the calibration's own z error from the spread between
+        beads).
     """
-    from .preprocess import noise_sigma
+    from .gdpt.build import build_templates
 
     stack = np.asarray(stack, dtype=np.float32)
     z = np.asarray(z, dtype=float)
@@ -178,55 +200,10 @@ def build_calibration(stack, z, pixel_size=None, template_size: int | None = Non
         raise UserError("calibration heights are not distinct", "give one distinct z per page")
     if brightfield:
         stack = stack.max() - stack
-    K, H, W = stack.shape
-    pages, found = [], []
-    for k in range(K):
-        p = stack[k]
-        border = np.concatenate([p[0], p[-1], p[:, 0], p[:, -1]])
-        p = p - np.median(border)
-        noise = 1.4826 * float(np.median(np.abs(border - np.median(border)))) + 1e-6
-        pages.append(p)
-        found.append(_page_centre(p, noise, signed=brightfield))
-    if any(f is None for f in found):
-        bad = [int(k) for k, f in enumerate(found) if f is None]
-        raise UserError(f"no particle visible in calibration page(s) {bad[:5]}", "crop the stack to the calibrated range")
-    # the particle's lateral position varies slowly (stage drift) but each page's centroid is noisy:
-    # smooth the per-page centres with a quadratic trend in z
-    cyx = np.array([(f[0], f[1]) for f in found])
-    if K >= 5:
-        zn = (z - z.mean()) / (np.ptp(z) or 1.0)
-        for a in range(2):
-            cyx[:, a] = np.polyval(np.polyfit(zn, cyx[:, a], 2), zn)
-    # brightfield: the image's extent grows smoothly with defocus, but one page's 95 % radius is noisy (the
-    # faint outer rings of a signed image come and go with the noise): a running median over 7 pages keeps
-    # neighbouring templates alike. (Fluorescence keeps its per-page sizes: measured better on diffusion3d.)
-    r95 = np.array([f[2] for f in found])
-    if brightfield and K >= 7:
-        from scipy.ndimage import median_filter
-
-        r95 = median_filter(r95, size=7, mode="nearest")
-    found = [(cyx[k, 0], cyx[k, 1], r95[k]) for k in range(K)]
-    # each page gets its own square template, sized to its particle image (1.2 x the radius holding
-    # 95 % of the light, at least 7 px): a small in-focus spot is not drowned in the noise of a
-    # window sized for the most defocused page, which would lower its Cm.
-    max_t = min(H, W) if min(H, W) % 2 else min(H, W) - 1
-    templates, centers = [], np.zeros((K, 2))
-    for k, (p, (cy, cx, r95)) in enumerate(zip(pages, found)):
-        T = int(template_size) | 1 if template_size is not None else int(2 * math.ceil(max(1.2 * r95, 3.0)) + 1)
-        T = min(T, max_t)
-        h = T // 2
-        r0 = int(round(cy)) - h
-        c0 = int(round(cx)) - h
-        padded = np.zeros((T, T), np.float32)
-        rs, cs = max(r0, 0), max(c0, 0)
-        re, ce = min(r0 + T, H), min(c0 + T, W)
-        padded[rs - r0:re - r0, cs - c0:ce - c0] = p[rs:re, cs:ce]
-        if padded.std() == 0:
-            raise UserError(f"calibration page {k} is constant", "check the calibration stack")
-        templates.append(padded)
-        centers[k] = (cy - r0, cx - c0)
+    templates, zz, centers, info = build_templates(stack, z, bool(brightfield), template_size, max_beads, fine_step)
     T = max(t.shape[0] for t in templates)
-    return Calibration(templates, z, centers, pixel_size, source, {"template_size": T, "signed": bool(brightfield)})
+    info.update(template_size=T, signed=bool(brightfield))
+    return Calibration(templates, zz, centers, pixel_size, source, info)
 
 
 def load_calibration(path, z_csv=None, z_step: float | None = None, z0: float = 0.0, pixel_size=None,

@@ -78,9 +78,14 @@ def test_heights_between_pages_and_off_centre(calib):
 
 
 def test_low_correlation_is_rejected(calib):
-    rng = np.random.default_rng(4)
-    noise = rng.normal(0, 10, (72, 72)).astype(np.float32)
-    assert len(match_templates(noise, [36], [36], calib, cm_min=0.5)) == 0
+    """Pure noise does not match: the best of 41 templates x 81 shifts on smoothed noise reaches Cm 0.3-0.6 by
+    chance (seed-dependent; one seed at 0.5 decided nothing), so several seeds and a margin above that."""
+    best = []
+    for seed in range(4, 10):
+        noise = np.random.default_rng(seed).normal(0, 10, (72, 72)).astype(np.float32)
+        assert len(match_templates(noise, [36], [36], calib, cm_min=0.7)) == 0
+        best.append(match_templates(noise, [36], [36], calib, cm_min=-1.0)["cm"].max())
+    assert np.median(best) < 0.6
 
 
 def test_read_calib_z(tmp_path):

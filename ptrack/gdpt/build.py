@@ -1,0 +1,119 @@
+"""From the pages of a calibration stack to the templates GDPT matches (see :func:`build_templates`)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .interp import default_fine_step, interpolate_templates
+from .stack import average_beads, bead_tracks, centred, cut_templates, find_beads, rejected_summary, require_pages
+
+__all__ = ["build_templates", "fit_crop"]
+
+
+def fit_crop(t, cy, cx, T: int):
+    """Embed (crop or zero-pad) a template so that its centre (cy, cx) sits on the centre pixel of T x T."""
+    return centred(t, cy, cx, T)
+
+
+def _ncc_same(a, b) -> float:
+    a = a - a.mean()
+    b = b - b.mean()
+    d = math.sqrt(float((a * a).sum()) * float((b * b).sum()))
+    return float((a * b).sum()) / d if d > 0 else -1.0
+
+
+def _bead_offsets(per_bead, dense, dz, z_pages, page_of):
+    """z of each bead's own pages read on the averaged (dense) calibration, minus the page height (m).
+
+    Returns (n_beads, K) with NaN where a bead was not used; the spread between beads is the calibration's own
+    z error and their mean per bead its tilt / field-dependent bias.
+    """
+    from ..calibration import _quadratic_peak
+
+    K = len(z_pages)
+    out = np.full((len(per_bead), K), np.nan)
+    for i, b in enumerate(per_bead):
+        for k in range(K):
+            t = b["templates"][k]
+            if t is None:
+                continue
+            js = np.nonzero(np.abs(page_of - k) <= 1)[0]
+            c = np.full(len(dense), -1.0)
+            for j in js:
+                T = dense[j].shape[0]
+                c[j] = _ncc_same(centred(t, b["centers"][k][0], b["centers"][k][1], T), dense[j])
+            j = int(np.argmax(c))
+            out[i, k] = _quadratic_peak(dz, c, j, n_points=5) - z_pages[k]
+    return out
+
+
+def build_templates(stack, z, signed: bool, template_size: int | None = None, max_beads: int | None = None,
+                    fine_step: float | str | None = "auto"):
+    """Templates of a calibration stack (pages sorted by z, brightfield already inverted).
+
+    Parameters
+    ----------
+    stack : array (K, H, W) float32
+    z : array (K,), increasing (m)
+    signed : bool
+        Brightfield (signed images).
+    template_size : int, optional
+        Fixed template side (px); default per page, from its image extent.
+    max_beads : int, optional
+        Use at most this many beads (the brightest).
+    fine_step : float, "auto" or None
+        Spacing (m) of templates interpolated between pages (:mod:`ptrack.gdpt.interp`); "auto":
+        :func:`ptrack.gdpt.interp.default_fine_step`; None: the pages only.
+
+    Returns
+    -------
+    templates, z, centers, info
+    """
+    K = len(z)
+    found, pages = [], []
+    for k in range(K):
+        f, p, _ = find_beads(stack[k], signed=signed)
+        found.append(f)
+        pages.append(p)
+    tracks = bead_tracks(found, max_beads)
+    per_bead = cut_templates(pages, tracks, z, signed, template_size)
+    if not per_bead:
+        per_bead = [{"templates": [None] * K, "why": ["no bead"] * K, "centers": np.zeros((K, 2)), "xy": (0, 0)}]
+    bad = rejected_summary(per_bead, z)
+    templates, centers, n_used = average_beads(per_bead, K)
+    keep = np.array([t is not None for t in templates])
+    require_pages(int(keep.sum()), bad, z)
+    zk = z[keep]
+    tk = [t for t, k in zip(templates, keep) if k]
+    ck = centers[keep]
+    info = {"n_beads": len(per_bead), "bead_xy": [b["xy"] for b in per_bead], "rejected": bad,
+            "beads_per_page": n_used[keep].tolist(), "page_z": zk.copy(),
+            "rejected_per_bead": [{k: w for k, w in enumerate(b["why"]) if w} for b in per_bead]}
+    if fine_step == "auto":
+        fine_step = default_fine_step(zk)
+    step = float(np.median(np.diff(zk)))
+    if fine_step is None or fine_step >= 0.99 * step or len(zk) < 2:
+        info["n_sub"] = 1
+        dense, dz, dc, page_of = tk, zk, ck, np.arange(len(zk))
+    else:
+        cen = [centred(t, c[0], c[1], t.shape[0]) for t, c in zip(tk, ck)]
+        dense, dz, page_of, scales = interpolate_templates(cen, zk, float(fine_step))
+        dc = np.array([(t.shape[0] // 2, t.shape[0] // 2) for t in dense], float)
+        info["n_sub"] = int(round(step / float(fine_step)))
+        info["page_scales"] = scales
+    info["page_of"] = page_of
+    if len(per_bead) > 1:
+        kept = [dict(b, templates=[t for t, k in zip(b["templates"], keep) if k],
+                     centers=b["centers"][keep]) for b in per_bead]
+        off = _bead_offsets(kept, dense, dz, zk, page_of)
+        info["bead_dz"] = off
+        with np.errstate(invalid="ignore"):
+            dev = off - np.nanmean(off, axis=0)
+        n = np.sum(np.isfinite(off), axis=0)
+        ok = n >= 2
+        # the scatter of single beads about the average; the average of n beads scatters sqrt(n) times less
+        info["z_error_bead"] = float(np.sqrt(np.nanmean(dev[:, ok] ** 2) * n[ok].mean() / max(n[ok].mean() - 1, 1)))\
+            if ok.any() else float("nan")
+        info["z_error"] = info["z_error_bead"] / math.sqrt(max(float(n[ok].mean()), 1.0)) if ok.any() else float("nan")
+    return dense, dz, dc, info
