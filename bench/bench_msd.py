@@ -59,7 +59,7 @@ def accuracy(reps: int, n_tracks: int, xs, Ns, Rs, seed: int = 0):
                                   time.perf_counter() - t0)
                 t0 = time.perf_counter()
                 q = max(2, N // 4)
-                res["ols-25%"] = (np.array([M._ols_fit(M.msd_from_positions(p, q).mean(0), q)[1] / (2 * DT)
+                res["ols-25%"] = (np.array([M.ols_fit(M.msd_from_positions(p, q).mean(0), q)[1] / (2 * DT)
                                             for p in pos_all]), f"{q}", time.perf_counter() - t0)
                 pred = math.sqrt(M.cve_variance(D0, sigma**2, DT, N, R) / n_tracks) / D0
                 for name, (Ds, lags, tt) in res.items():

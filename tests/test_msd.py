@@ -172,7 +172,7 @@ def test_ols_optimal_lags_near_cramer_rao_bound(x, R):
     rng = np.random.default_rng(5)
     for _ in range(60):
         m = M.msd_from_positions(M.brownian_tracks(n_p, n_f, D0, DT, sigma, R, seed=rng), 50).mean(0)
-        Df.append(M._ols_fit(m, 50)[1] / (2 * DT))
+        Df.append(M.ols_fit(m, 50)[1] / (2 * DT))
     assert np.std(Df) > 1.5 * sd
 
 

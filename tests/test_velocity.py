@@ -49,10 +49,14 @@ def test_gls_is_unbiased_and_its_standard_error_matches_the_scatter(sigma, R, ga
 
 def test_without_noise_the_gls_is_the_end_to_end_displacement_even_with_gaps():
     df = V.drifting_tracks(5, 40, D0, DT, VEL, gap_fraction=0.3, seed=3)
-    parts, off, frames, vals, dt, _ = V._sorted_tracks(df, ("x", "y", "z"))
+    from ptrack.motion.tracks import sort_tracks
+    from ptrack.motion.velocity import _velocity_kernel
+
+    st = sort_tracks(df, ("x", "y", "z"))
+    parts, off, frames, vals, dt = st.particles, st.off, st.frames, st.vals, st.dt
     D_in = np.full((3, len(parts)), D0)
     s2_in = np.zeros((3, len(parts)))
-    res = V._velocity_kernel(vals, frames, off, dt, 0.0, D_in, s2_in, 4, 1)
+    res = _velocity_kernel(vals, frames, off, dt, 0.0, D_in, s2_in, 4, 1)
     for p in range(len(parts)):
         a, b = off[p], off[p + 1] - 1
         span = (frames[b] - frames[a]) * dt
@@ -217,7 +221,7 @@ def test_velocity_command_writes_table_profile_plot_and_json(tmp_path, capsys):
     assert _run_cmd([str(traj), "--motion-blur", "0", "--noise", "pooled", "--out", str(out), "--report", str(rep), "--json", str(js),
                      "--bins", "4", "--reference=-5.2e-6", "--contact", "1e-6"]) == 0
     text = capsys.readouterr().out
-    assert "um/s" in text and "bootstrap" in text and "standard errors" in text
+    assert "µm/s" in text and "bootstrap" in text and "standard errors" in text
     vel = pd.read_csv(out, comment="#")
     assert len(vel) == 30 and {"vx", "vx_err", "vz", "vz_err", "Dz", "z_mean", "n_frames"} <= set(vel.columns)
     s = json.loads(js.read_text())

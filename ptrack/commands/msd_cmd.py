@@ -1,14 +1,19 @@
 """MSD and diffusion coefficients of a trajectories table (Parquet or CSV, SI units).
 
-Prints D +- standard error per axis in m^2/s and um^2/s (the seed's Table 4.1
+Prints D ± standard error per axis in m^2/s and µm²/s (the seed's Table 4.1
 layout: D_x, D_y, D_xy side by side), the localisation error, the number of
 tracks, the tracks flagged as non-diffusive (power-law exponent alpha outside
 the range expected for Brownian tracks of the same length), and, when a
 radius and a viscosity are given (or the table has a 'radius' column), the
 Stokes-Einstein value kB T / (6 pi mu r) and the ratio D / D_SE. The
 temperature defaults to 293.15 K (room temperature, as in the seed). Writes
-the log-log MSD plot with the fitted model (default: <TRAJ>_msd.png beside
-the input) and, with --json, a machine-readable summary.
+the log-log MSD plot with the fitted model (default: <TRAJ>_msd.png in the
+working folder) and, with --json, a machine-readable summary.
+
+Defaults that depend on the table, each said in the output: the
+field-of-view correction is on for tables from a camera (with ``x_px``
+columns: measured or rendered movies), off for simulated positions; the
+motion blur R comes from the metadata or the localisation errors, else 1/6.
 """
 from __future__ import annotations
 
@@ -28,8 +33,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--estimator", default="cve", choices=("cve", "ols"),
                    help="cve: covariance-based estimator (Vestergaard et al. 2014, default); "
                         "ols: least squares over the optimal number of lags (Michalet 2010)")
-    p.add_argument("--motion-blur", type=float, default=1 / 6,
-                   help="motion-blur parameter R: 1/6 full-frame exposure (default), 0 instantaneous (simulations)")
+    p.add_argument("--motion-blur", type=float, default=None,
+                   help="motion-blur parameter R = exposure / frame interval / 6: 1/6 full-frame exposure, 0 "
+                        "instantaneous (simulations); default: from the table's metadata or its localisation errors, "
+                        "else 1/6 (the output says which)")
     p.add_argument("--radius", type=float, help="particle radius, m (for Stokes-Einstein; default: median of the table's 'radius' column if any)")
     p.add_argument("--viscosity", type=float, help="fluid viscosity, Pa s (for Stokes-Einstein)")
     p.add_argument("--temperature", type=float, default=293.15, help="temperature, K (default 293.15)")
@@ -39,15 +46,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--flag-level", type=float, default=0.01, help="false-positive rate of the non-diffusive flag on Brownian tracks (default 0.01)")
     p.add_argument("--n-boot", type=int, default=200, help="bootstrap resamples over whole particles (default 200)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the bootstrap and flag bounds")
-    p.add_argument("--field-of-view", default="none", metavar="none|auto|x,y[,z]",
+    p.add_argument("--field-of-view", default=None, metavar="none|auto|x,y[,z]",
                    help="correct the loss of long steps at the edges of the field of view: 'auto' = the range of x "
-                        "and y (measured tracks), or the components whose range limits what is seen, e.g. x,y,z "
-                        "(default none: simulations)")
+                        "and y, or the components whose range limits what is seen, e.g. x,y,z; 'none' for positions "
+                        "not cut by a field (default: auto for tables from a camera, with x_px columns; else none)")
     p.add_argument("--linking-free", action="store_true",
-                   help="also estimate D without the links (ptrack.msd.pair_diffusion: unbiased when particles "
+                   help="also estimate D without the links (ptrack.motion.pair_diffusion: unbiased when particles "
                         "move a fair fraction of their spacing per frame)")
     p.add_argument("--json", metavar="OUT", help="write a JSON summary")
-    p.add_argument("--plot", metavar="OUT.png", help="MSD plot path (default <TRAJ>_msd.png)")
+    p.add_argument("--plot", metavar="OUT.png", help="MSD plot path (default <TRAJ>_msd.png in the working folder)")
     p.add_argument("--no-plot", action="store_true", help="do not write the plot")
     p.add_argument("--tracks-out", metavar="OUT.csv",
                    help="write one row per track: CVE D per axis with its error, alpha, flag and reason")
@@ -56,22 +63,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def _fmt(v, e):
     if v is None or not math.isfinite(v):
         return "n/a"
-    return f"{v:.4g} +- {e:.2g}" if e is not None and math.isfinite(e) else f"{v:.4g}"
+    return f"{v:.4g} ± {e:.2g}" if e is not None and math.isfinite(e) else f"{v:.4g}"
 
 
 def run(args) -> int:
     from .. import msd as M
     from ..table import read_table
 
-    axes = M._parse_axes(args.dims)
+    from ..motion.stokes import implausible_D_note
+    from ..motion.tracks import resolve_motion_blur
+
+    axes = M.parse_axes(args.dims)
     if args.radius is not None:
         check_positive("--radius", args.radius)
     if args.viscosity is not None:
         check_positive("--viscosity", args.viscosity)
     check_positive("--temperature", args.temperature)
-    M_R = float(args.motion_blur)
-    if not (math.isfinite(M_R) and 0 <= M_R <= 0.25):
-        raise UserError(f"--motion-blur = {args.motion_blur!r} outside [0, 1/4]", "use 1/6 for full-frame exposure, 0 for instantaneous")
+    if args.motion_blur is not None:
+        M.check_motion_blur(args.motion_blur)
     if args.n_boot < 0:
         raise UserError(f"--n-boot = {args.n_boot} is negative", "give 0 or a positive number")
     if not (0 < args.flag_level < 1):
@@ -82,11 +91,13 @@ def run(args) -> int:
         raise UserError("--radius given without --viscosity", "give --viscosity (Pa s) for the Stokes-Einstein value")
     if args.tracks_out is not None and Path(args.tracks_out).suffix.lower() != ".csv":
         raise UserError(f"--tracks-out {args.tracks_out} is not a .csv file", "give a path ending in .csv")
-    plot_path = None if args.no_plot else Path(args.plot) if args.plot else Path(args.traj).with_name(Path(args.traj).stem + "_msd.png")
+    # outputs go where the user points, else into the working folder (never beside the input)
+    plot_path = None if args.no_plot else Path(args.plot) if args.plot else Path.cwd() / (Path(args.traj).stem + "_msd.png")
     if plot_path is not None and plot_path.suffix.lower() != ".png":
         raise UserError(f"plot path {plot_path} is not a .png file", "give a path ending in .png")
 
     df = read_table(args.traj)
+    M_R, R_source = resolve_motion_blur(df, args.motion_blur)
     radius = args.radius
     if radius is None and args.viscosity is not None and "radius" in df.columns:
         r = df["radius"].to_numpy(dtype=float)
@@ -108,9 +119,16 @@ def run(args) -> int:
         used.attrs.update(df.attrs)
         if used.empty:
             raise UserError("every track is flagged as non-diffusive", "run without --exclude-flagged")
-    fov = {"none": None, "auto": "auto"}.get(args.field_of_view.strip().lower())
-    if fov is None and args.field_of_view.strip().lower() != "none":
-        fov = tuple(c.strip() for c in args.field_of_view.split(",") if c.strip())
+    fov_arg = args.field_of_view
+    fov_source = "given"
+    if fov_arg is None:
+        # a camera sees a field: its edges cut tracks (-4.5 % on D for measured tracks if not corrected)
+        fov_arg = "auto" if "x_px" in df.columns else "none"
+        fov_source = ("default for a table from a camera (x_px columns)" if fov_arg == "auto"
+                      else "default for positions without image columns (simulations)")
+    fov = {"none": None, "auto": "auto"}.get(fov_arg.strip().lower())
+    if fov is None and fov_arg.strip().lower() != "none":
+        fov = tuple(c.strip() for c in fov_arg.split(",") if c.strip())
     res = M.estimate_diffusion(used, axes=axes, estimator=args.estimator, motion_blur=M_R, n_boot=args.n_boot,
                                seed=args.seed, subtract_drift=args.subtract_drift, max_lag=args.max_lag,
                                field_of_view=fov)
@@ -121,24 +139,31 @@ def run(args) -> int:
     print(f"{args.traj}: {res.n_particles} tracks, {res.n_displacements} frame-to-frame displacements, "
           f"frame interval {res.frame_interval:.6g} s")
     est = "CVE (Vestergaard 2014)" if res.estimator == "cve" else "least squares over the optimal number of lags (Michalet 2010)"
-    print(f"estimator: {est}; motion blur R = {res.motion_blur:.4g}; errors: {res.se_method}"
+    print(f"estimator: {est}; motion blur R = {res.motion_blur:.4g} ({R_source}); errors: {res.se_method}"
           + (f" over {args.n_boot} particle resamples" if res.se_method == "bootstrap" else " (closed form)")
           + ("; drift subtracted" if res.drift_corrected else ""))
-    print(f"{'axis':<5s} {'D (m^2/s)':>26s} {'D (um^2/s)':>22s} {'sigma_loc (nm)':>15s} {'lags':>5s}" + ("   D/D_SE" if d_se else ""))
+    print(f"{'axis':<5s} {'D (m^2/s)':>26s} {'D (µm²/s)':>22s} {'sigma_loc (nm)':>15s} {'lags':>5s}" + ("   D/D_SE" if d_se else ""))
     for a in axes:
         D, e = res.D[a], res.D_err[a]
         line = f"{a:<5s} {_fmt(D, e):>26s} {_fmt(D * 1e12, e * 1e12):>22s} {res.sigma_loc[a] * 1e9:>15.3g} {str(res.n_lags[a] or '-'):>5s}"
         if d_se:
-            line += f"   {D / d_se:.3f} +- {e / d_se:.2g}"
+            line += f"   {D / d_se:.3f} ± {e / d_se:.2g}"
         print(line)
-    print("side by side (um^2/s): " + " | ".join(f"D_{a} = {_fmt(res.D[a] * 1e12, res.D_err[a] * 1e12)}" for a in axes)
-          + (f"; field of view corrected ({', '.join(M._resolve_fov(used, fov))})" if fov else ""))
+    print("side by side (µm²/s): " + " | ".join(f"D_{a} = {_fmt(res.D[a] * 1e12, res.D_err[a] * 1e12)}" for a in axes)
+          + (f"; field of view corrected ({', '.join(M.resolve_fov(used, fov))}; {fov_source})" if fov
+             else f"; no field-of-view correction ({fov_source})"))
+    notes = {implausible_D_note(res.D[a]) for a in axes} - {None}
+    for note in notes:
+        print(f"warning: {note}")
+    nonfinite = [a for a in axes if not math.isfinite(res.D[a])]
+    if nonfinite:
+        raise UserError(f"D_{nonfinite[0]} is not finite", "check the table's positions (m) and times (s)")
     if pair is not None:
-        print("linking-free (um^2/s): " + " | ".join(f"D_{a} = {_fmt(pair.D[a] * 1e12, pair.D_err[a] * 1e12)}"
+        print("linking-free (µm²/s): " + " | ".join(f"D_{a} = {_fmt(pair.D[a] * 1e12, pair.D_err[a] * 1e12)}"
                                                     for a in axes)
               + f"; link ambiguity {pair.link_ambiguity:.3f} (above ~0.05 D from tracks is biased low)")
     if d_se:
-        print(f"Stokes-Einstein: D_SE = {d_se:.4g} m^2/s = {d_se * 1e12:.4g} um^2/s "
+        print(f"Stokes-Einstein: D_SE = {d_se:.4g} m^2/s = {d_se * 1e12:.4g} µm²/s "
               f"(r = {radius:.4g} m, mu = {args.viscosity:.4g} Pa s, T = {args.temperature:.5g} K)")
     n_assessed = int(np.isfinite(flags["alpha"]).sum())
     print(f"non-diffusive tracks: {len(flagged)} of {n_assessed} assessed (alpha test at a {args.flag_level:g} false-positive rate)"
@@ -149,7 +174,9 @@ def run(args) -> int:
         print(f"  ... and {len(flagged) - 20} more")
 
     if plot_path is not None:
-        M.plot_msd(res, plot_path, title=f"{Path(args.traj).name}: {res.estimator.upper()}")
+        from ..plot import plot_msd
+
+        plot_msd(res, plot_path, title=f"{Path(args.traj).name}: {res.estimator.upper()}")
         print(f"wrote {plot_path}")
     if args.tracks_out:
         per = M.particle_diffusion(df, axes=axes, motion_blur=M_R, subtract_drift=args.subtract_drift)
@@ -167,7 +194,10 @@ def run(args) -> int:
         out["flagged"] = [{"particle": int(r["particle"]), "alpha": float(r["alpha"]), "reason": r["reason"]}
                           for _, r in flagged.iterrows()]
         out["excluded_flagged"] = bool(args.exclude_flagged)
-        out["field_of_view"] = M._resolve_fov(used, fov) if fov else None
+        out["field_of_view"] = M.resolve_fov(used, fov) if fov else None
+        out["field_of_view_source"] = fov_source
+        out["motion_blur_source"] = R_source
+        out["warnings"] = sorted(notes)
         if pair is not None:
             out["linking_free"] = {"D": pair.D, "D_err": pair.D_err, "link_ambiguity": pair.link_ambiguity,
                                    "drift_velocity": pair.drift_velocity}

@@ -7,7 +7,7 @@ error; D and the localisation error per axis come from the drift-corrected
 increments. Prints the ensemble drift (inverse-variance weighted mean,
 bootstrap standard error over particles) and, for 3D tables, the velocity
 against height z in bins (EPD: velocity against distance from the electrode),
-in um/s. With --contact Z (the particle centre's height at contact), each
+in µm/s. With --contact Z (the particle centre's height at contact), each
 track's rows from its touch-down on the substrate are dropped first, so the
 drift is that before deposition. Writes the per-particle table (CSV, SI units: m/s, m^2/s, m), a PNG
 (tracks coloured by drift speed, velocity against z with error bars) and,
@@ -29,8 +29,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("traj", metavar="TRAJ", help="trajectories table (.parquet or .csv; frame, t, particle, x, y, z in SI units)")
     p.add_argument("--axes", default=None,
                    help="components to analyse, e.g. xyz, xy, z (default: xyz if the table has heights, else xy)")
-    p.add_argument("--motion-blur", type=float, default=1 / 6,
-                   help="motion-blur parameter R: 1/6 full-frame exposure (default), 0 instantaneous (simulations)")
+    p.add_argument("--motion-blur", type=float, default=None,
+                   help="motion-blur parameter R = exposure / frame interval / 6: 1/6 full-frame exposure, 0 "
+                        "instantaneous (simulations); default: from the table's metadata or its localisation errors, "
+                        "else 1/6 (the output says which)")
     p.add_argument("--bins", type=int, default=8, help="height bins of the velocity profile against z (default 8; 0: none)")
     p.add_argument("--noise", choices=("pooled", "track"), default="pooled",
                    help="D and localisation error for the weights and errors: pooled over the tracks (default; "
@@ -48,8 +50,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="bootstrap seed (default 0)")
     p.add_argument("--reference", type=float, default=None,
                    help="reference velocity along z, m/s, e.g. the Henry velocity (drawn on the plot, compared in the output)")
-    p.add_argument("--out", metavar="VEL.csv", help="per-particle velocities (default <TRAJ>_velocity.csv beside the input)")
-    p.add_argument("--report", metavar="DIR", help="directory for the plot and the profile table (default: beside the input)")
+    p.add_argument("--out", metavar="VEL.csv", help="per-particle velocities (default <TRAJ>_velocity.csv in --report, "
+                                                 "else in the working folder)")
+    p.add_argument("--report", metavar="DIR", help="directory for the plot and the profile table (default: the working folder)")
     p.add_argument("--no-plot", action="store_true", help="do not write the plot")
     p.add_argument("--json", metavar="OUT", help="write a JSON summary")
 
@@ -59,7 +62,7 @@ def _um(v, e=None):
         return "n/a"
     s = f"{v * 1e6:+.4g}"
     if e is not None and math.isfinite(e):
-        s += f" +- {e * 1e6:.2g}"
+        s += f" ± {e * 1e6:.2g}"
     return s
 
 
@@ -75,9 +78,10 @@ def run(args) -> int:
     from .. import velocity as V
     from ..table import read_table
 
-    R = float(args.motion_blur)
-    if not (math.isfinite(R) and 0 <= R < 0.25):
-        raise UserError(f"--motion-blur = {args.motion_blur!r} outside [0, 1/4)", "use 1/6 for full-frame exposure, 0 for instantaneous")
+    from ..motion.tracks import axis_components, check_motion_blur, resolve_motion_blur
+
+    if args.motion_blur is not None:
+        check_motion_blur(args.motion_blur)
     if args.bins < 0:
         raise UserError(f"--bins = {args.bins} is negative", "give 0 (no profile) or a number of bins")
     if args.min_frames < V.MIN_FRAMES:
@@ -88,10 +92,11 @@ def run(args) -> int:
     if args.reference is not None and not math.isfinite(args.reference):
         raise UserError(f"--reference = {args.reference!r} is not finite", "give a velocity in m/s")
     traj = Path(args.traj)
-    out_csv = Path(args.out) if args.out else traj.with_name(traj.stem + "_velocity.csv")
+    # outputs go where the user points, else into the working folder (never beside the input)
+    report = Path(args.report) if args.report else Path.cwd()
+    out_csv = Path(args.out) if args.out else report / (traj.stem + "_velocity.csv")
     if out_csv.suffix.lower() != ".csv":
         raise UserError(f"--out {out_csv} is not a .csv file", "give a path ending in .csv")
-    report = Path(args.report) if args.report else traj.parent
     if report.exists() and not report.is_dir():
         raise UserError(f"--report {report} exists and is not a directory", "give a directory")
 
@@ -103,12 +108,18 @@ def run(args) -> int:
         if df.empty:
             raise UserError(f"every row is within {args.contact_tolerance} m of contact (z <= {args.contact + args.contact_tolerance} m)",
                             "check --contact (m, the particle centre at contact) and the table's z")
-    axes = V._parse_axes(args.axes) if args.axes else V._default_axes(df)
+    z = df["z"].to_numpy(dtype=float)
+    axes = axis_components(args.axes) if args.axes else (("x", "y", "z") if np.isfinite(z).any() else ("x", "y"))
+    R, R_source = resolve_motion_blur(df, args.motion_blur)
     vel = V.particle_velocity(df, axes=axes, motion_blur=R, min_frames=args.min_frames, noise=args.noise)
     n_ok = int(np.isfinite(vel[f"v{axes[0]}"].to_numpy(float)).sum())
     if n_ok == 0:
-        raise UserError(f"no track has {args.min_frames} or more positions (longest: {int(vel['n_frames'].max())})",
-                        "give longer tracks or a smaller --min-frames")
+        # positions along the axis, not rows: a row with a NaN coordinate is no position of that axis
+        n_ax = vel[f"n_{axes[0]}"].to_numpy()
+        raise UserError(f"no track gave a velocity along {axes[0]}: the most positions with a finite {axes[0]} in one "
+                        f"track is {int(n_ax.max())} (of {int(vel['n_frames'].max())} rows), and "
+                        f"{int((n_ax >= args.min_frames).sum())} tracks have {args.min_frames} or more",
+                        "give longer tracks, a smaller --min-frames, or other --axes")
     ens = V.ensemble_velocity(vel, axes=axes, weights=args.weights, n_boot=args.n_boot, seed=args.seed)
     prof = None
     if args.bins > 0 and "z" in axes:
@@ -117,38 +128,39 @@ def run(args) -> int:
 
     # ---- report
     print(f"{traj}: {len(vel)} tracks, {n_ok} with >= {args.min_frames} positions; frame interval "
-          f"{vel.attrs['velocity']['frame_interval']:.6g} s; motion blur R = {R:.4g}; noise parameters: {args.noise}")
+          f"{vel.attrs['velocity']['frame_interval']:.6g} s; motion blur R = {R:.4g} ({R_source}); noise parameters: "
+          f"{args.noise}")
     if args.contact is not None:
         print(f"deposition: {n_rows_all - len(df)} of {n_rows_all} rows dropped from touch-down on "
-              f"(z within {args.contact_tolerance * 1e6:.3g} um of contact at {args.contact * 1e6:.3g} um)")
+              f"(z within {args.contact_tolerance * 1e6:.3g} µm of contact at {args.contact * 1e6:.3g} µm)")
     elif "z" in axes:
         z = df["z"].to_numpy(dtype=float)
         z = z[np.isfinite(z)]
         low = z[z < np.percentile(z, 1) + 0.3e-6]
         if len(low) > 0.2 * len(z):
-            print(f"hint: {len(low) / len(z):.0%} of the rows sit within 0.3 um of the lowest height "
-                  f"({np.median(low) * 1e6:.3g} um): deposited particles pull the drift towards 0; "
+            print(f"hint: {len(low) / len(z):.0%} of the rows sit within 0.3 µm of the lowest height "
+                  f"({np.median(low) * 1e6:.3g} µm): deposited particles pull the drift towards 0; "
                   f"for the drift before deposition give --contact {np.median(low):.3g}")
-    print("ensemble drift velocity (um/s; " + ("inverse-variance" if args.weights == "inverse_variance" else "equal")
+    print("ensemble drift velocity (µm/s; " + ("inverse-variance" if args.weights == "inverse_variance" else "equal")
           + f" weights; error: bootstrap over particles, {args.n_boot} resamples):")
-    print(f"{'axis':<5s} {'v (um/s)':>20s} {'model SE':>9s} {'chi2/dof':>9s} {'tracks':>7s}")
+    print(f"{'axis':<5s} {'v (µm/s)':>20s} {'model SE':>9s} {'chi2/dof':>9s} {'tracks':>7s}")
     for _, r in ens.iterrows():
         print(f"{r['axis']:<5s} {_um(r['v'], r['v_err']):>20s} {r['v_err_model'] * 1e6:>9.2g} {r['chi2_dof']:>9.3g} "
               f"{int(r['n_particles']):>7d}")
     if args.reference is not None and "z" in axes:
         rz = ens[ens["axis"] == "z"].iloc[0]
         dev = (rz["v"] - args.reference) / rz["v_err"] if rz["v_err"] > 0 else float("nan")
-        print(f"reference v_z = {_um(args.reference)} um/s: measured - reference = {dev:+.2f} standard errors")
+        print(f"reference v_z = {_um(args.reference)} µm/s: measured - reference = {dev:+.2f} standard errors")
     if prof is not None:
-        print("velocity against height (um, um/s; error: bootstrap over particles):")
-        print(f"{'z range (um)':>17s} {'tracks':>6s} {'steps':>6s} " + " ".join(f"{'v_' + a:>18s}" for a in axes))
+        print("velocity against height (µm, µm/s; error: bootstrap over particles):")
+        print(f"{'z range (µm)':>17s} {'tracks':>6s} {'steps':>6s} " + " ".join(f"{'v_' + a:>18s}" for a in axes))
         for _, r in prof.iterrows():
             print(f"{r['z_lo'] * 1e6:7.2f} - {r['z_hi'] * 1e6:7.2f} {int(r['n_particles']):>6d} {int(r['n_increments']):>6d} "
                   + " ".join(f"{_um(r['v' + a], r['v' + a + '_err']):>18s}" for a in axes))
     show = vel[np.isfinite(vel[f"v{axes[0]}"])].sort_values("n_frames", ascending=False).head(10)
-    print(f"per particle (um/s, longest {len(show)} of {n_ok} tracks):")
+    print(f"per particle (µm/s, longest {len(show)} of {n_ok} tracks):")
     print(f"{'particle':>8s} {'frames':>6s} " + " ".join(f"{'v_' + a:>16s}" for a in axes)
-          + (f" {'z_mean (um)':>11s}" if "z" in axes else ""))
+          + (f" {'z_mean (µm)':>11s}" if "z" in axes else ""))
     for _, r in show.iterrows():
         print(f"{int(r['particle']):>8d} {int(r['n_frames']):>6d} " + " ".join(f"{_um(r['v' + a], r['v' + a + '_err']):>16s}" for a in axes)
               + (f" {r['z_mean'] * 1e6:>11.3f}" if "z" in axes else ""))
@@ -171,7 +183,7 @@ def run(args) -> int:
         print(f"wrote {png}")
     if args.json:
         summary = {
-            "source": str(traj), "axes": "".join(axes), "motion_blur": R,
+            "source": str(traj), "axes": "".join(axes), "motion_blur": R, "motion_blur_source": R_source,
             "frame_interval": vel.attrs["velocity"]["frame_interval"], "n_tracks": len(vel), "n_tracks_used": n_ok,
             "weights": args.weights, "noise": args.noise, "contact": args.contact,
             "contact_tolerance": args.contact_tolerance if args.contact is not None else None,

@@ -1,0 +1,311 @@
+"""Trajectories table -> arrays for the estimators: the one place for axes, frame interval, motion blur, sorting.
+
+Every estimator of :mod:`ptrack.motion` goes through these functions, so a
+table is checked, sorted and timed by one rule:
+
+- :func:`parse_axes`: MSD axes (``x``, ``y``, ``z``, ``xy``, ``xz``, ``yz``,
+  ``xyz``) and :func:`axis_components` the coordinate columns they use. Code
+  that works per coordinate (velocities) takes the components of the axes,
+  so ``"xy"`` means the x and y columns everywhere.
+- :func:`frame_interval`: seconds per frame.
+- :func:`check_motion_blur`: the motion-blur parameter R.
+- :func:`sort_tracks` (rows sorted by particle and frame) and
+  :func:`prepare_tracks` (dense-in-time arrays with NaN in the gaps, for the
+  MSD and CVE kernels), built on it.
+"""
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from ..errors import UserError
+
+#: axis name -> the coordinate columns summed in its MSD
+AXES = {
+    "x": ("x",), "y": ("y",), "z": ("z",),
+    "xy": ("x", "y"), "xz": ("x", "z"), "yz": ("y", "z"), "xyz": ("x", "y", "z"),
+}
+#: coordinate columns of a trajectories table, in order
+COMPONENTS = ("x", "y", "z")
+#: default longest lag (frames) of MSD tables
+DEFAULT_MAX_LAG = 100
+#: largest motion-blur parameter accepted (exclusive). R = S/6 for a uniform exposure of a fraction S of the
+#: frame, so a real camera has R <= 1/6; R = 1/4 would need all the light at the two ends of the frame and makes
+#: the increments' covariance singular without localisation noise (velocity GLS, CVE error model).
+MOTION_BLUR_MAX = 0.25
+#: largest |coordinate| (m) accepted: squares and sums of squares of larger values overflow float64
+MAX_COORDINATE = 1e150
+
+
+def parse_axes(axes) -> tuple:
+    """MSD axes from ``"x,y,xy"``, ``("x", "xy")`` ...: a tuple of names from :data:`AXES`.
+
+    Examples
+    --------
+    >>> parse_axes("x, y, xy")
+    ('x', 'y', 'xy')
+    >>> axis_components(parse_axes("xyz"))
+    ('x', 'y', 'z')
+    """
+    if isinstance(axes, str):
+        axes = [a.strip().lower() for a in axes.split(",") if a.strip()]
+    axes = tuple(str(a).lower() for a in axes)
+    if not axes:
+        raise UserError("no axes given", f"choose from {', '.join(AXES)}")
+    for a in axes:
+        if a not in AXES:
+            raise UserError(f"unknown axis '{a}'", f"choose from {', '.join(AXES)}")
+    if len(set(axes)) != len(axes):
+        raise UserError(f"repeated axis in {axes!r}", "name each axis once")
+    return axes
+
+
+def axis_components(axes) -> tuple:
+    """Coordinate columns used by the axes (parsed or not), in x, y, z order."""
+    names = {c for a in parse_axes(axes) for c in AXES[a]}
+    return tuple(c for c in COMPONENTS if c in names)
+
+
+def check_motion_blur(motion_blur) -> float:
+    """The motion-blur parameter R as a float in [0, 1/4), or a UserError (the one range of the toolkit).
+
+    R = (exposure / frame interval) / 6 for a uniform exposure: 1/6 with the
+    shutter open the whole frame, 0 for instantaneous positions (simulations).
+    """
+    try:
+        R = float(motion_blur)
+    except (TypeError, ValueError):
+        raise UserError(f"motion_blur = {motion_blur!r} is not a number", "give R = exposure / frame interval / 6")
+    if not (math.isfinite(R) and 0.0 <= R < MOTION_BLUR_MAX):
+        raise UserError(f"motion_blur = {motion_blur!r} outside [0, 1/4)",
+                        "use exposure / frame interval / 6: 1/6 for a shutter open the whole frame, 0 for instantaneous")
+    return R
+
+
+def frame_interval(df: pd.DataFrame) -> float:
+    """Frame interval (s) of a trajectories or localisation table: the one rule of the toolkit.
+
+    From the ``t`` column: the median of dt / dframe between consecutive
+    rows of the same particle (between consecutive frames when the table has
+    no ``particle`` column or no particle has two rows). The metadata
+    ``frame_interval`` is used only when ``t`` cannot give one (a single
+    frame); if both exist and differ by more than 1 %, ``t`` is used and a
+    warning names both.
+
+    Examples
+    --------
+    >>> import pandas as pd
+    >>> frame_interval(pd.DataFrame({"frame": [0, 1, 3], "t": [0.0, 0.1, 0.3], "particle": [0, 0, 0]}))
+    0.1
+    """
+    meta = df.attrs.get("ptrack", {}) or {}
+    dt_meta = meta.get("frame_interval")
+    dt = None
+    if "t" in df.columns and "frame" in df.columns and len(df) > 1:
+        f = df["frame"].to_numpy().astype(np.int64)
+        t = df["t"].to_numpy(dtype=float)
+        if "particle" in df.columns:
+            p = df["particle"].to_numpy()
+            order = np.lexsort((f, p))
+            f, t, p = f[order], t[order], p[order]
+            same = (p[1:] == p[:-1]) & (f[1:] != f[:-1])
+        else:
+            same = np.zeros(len(f) - 1, bool)
+        if not same.any():
+            u, i = np.unique(f, return_index=True)
+            f, t = u, t[i]
+            same = np.ones(len(f) - 1, bool)
+        if same.any():
+            dt = float(np.median((t[1:] - t[:-1])[same] / (f[1:] - f[:-1])[same]))
+            if not (math.isfinite(dt) and dt > 0):
+                raise UserError(f"frame interval from the 't' column is {dt!r} s", "'t' must increase with 'frame'")
+    if dt is None:
+        if dt_meta is None:
+            raise UserError("cannot find the frame interval: one frame only and no 'frame_interval' metadata",
+                            "give tracks of at least two frames")
+        dt = float(dt_meta)
+    elif dt_meta is not None and math.isfinite(float(dt_meta)) and abs(float(dt_meta) / dt - 1) > 0.01:
+        warnings.warn(f"the 't' column gives {dt:g} s per frame, the metadata frame_interval {float(dt_meta):g} s; "
+                      "using the 't' column", stacklevel=2)
+    if not (math.isfinite(dt) and dt > 0):
+        raise UserError(f"frame interval = {dt!r} s", "give a positive frame interval")
+    return dt
+
+
+@dataclass
+class SortedTracks:
+    """Rows of a trajectories table sorted by (particle, frame).
+
+    Attributes
+    ----------
+    particles : ndarray (n_p,)
+        Particle ids.
+    off : ndarray (n_p + 1,)
+        Row offsets of each particle.
+    frames : ndarray (N,)
+        Frame of each sorted row.
+    vals : ndarray (k, N)
+        The requested components (m), NaN where missing.
+    dt : float
+        Frame interval, s (:func:`frame_interval`).
+    order : ndarray (N,)
+        Sorted row -> row of the table.
+    """
+
+    particles: np.ndarray
+    off: np.ndarray
+    frames: np.ndarray
+    vals: np.ndarray
+    dt: float
+    order: np.ndarray
+
+
+def sort_tracks(df: pd.DataFrame, components) -> SortedTracks:
+    """Check a trajectories table and sort its rows by (particle, frame): the one track preparation.
+
+    Raises a UserError for a missing column, an empty table, z requested from
+    a 2D table, or a particle seen twice in one frame.
+    """
+    components = tuple(components)
+    for c in ("frame", "t", "particle", *components):
+        if c not in df.columns:
+            raise UserError(f"trajectories table lacks column '{c}'", "a trajectories table needs frame, t, particle, x, y, z")
+    if len(df) == 0:
+        raise UserError("the trajectories table is empty", "track some particles first")
+    if "z" in components and not np.isfinite(df["z"].to_numpy(dtype=float)).any():
+        raise UserError("z axis requested but the table is 2D (z is NaN everywhere)", "use the axes x, y, xy")
+    part = df["particle"].to_numpy().astype(np.int64)
+    frame = df["frame"].to_numpy().astype(np.int64)
+    order = np.lexsort((frame, part))
+    part, frame = part[order], frame[order]
+    same = part[1:] == part[:-1]
+    dup = same & (frame[1:] == frame[:-1])
+    if dup.any():
+        i = int(np.flatnonzero(dup)[0])
+        raise UserError(f"particle {part[i]} appears twice in frame {frame[i]}", "each particle may appear once per frame")
+    dt = frame_interval(df)
+    starts = np.flatnonzero(np.r_[True, ~same])
+    off = np.r_[starts, len(part)].astype(np.int64)
+    vals = np.full((len(components), len(part)), np.nan)
+    for j, c in enumerate(components):
+        vals[j] = df[c].to_numpy(dtype=float)[order]
+        big = np.nanmax(np.abs(vals[j])) if np.isfinite(vals[j]).any() else 0.0
+        if not big <= MAX_COORDINATE:
+            raise UserError(f"column '{c}' holds {big:.3g}: not a position in m (squared displacements overflow)",
+                            "give positions in m (a microscope field is about 1e-4 m)")
+    return SortedTracks(part[starts], off, np.ascontiguousarray(frame), np.ascontiguousarray(vals), dt, order)
+
+
+@dataclass
+class Tracks:
+    """Tracks laid out dense in time for the numba kernels: slot ``off[p] + frame - first[p]``, NaN in gaps."""
+
+    particles: np.ndarray      # particle ids (n_p,)
+    first: np.ndarray          # first frame of each particle (n_p,)
+    off: np.ndarray            # offsets into the dense arrays (n_p + 1,)
+    comps: dict                # component name -> dense float64 array (total,)
+    dt: float                  # frame interval, s
+    n_rows: np.ndarray         # rows (positions) per particle
+
+    def stack(self, names):
+        return np.ascontiguousarray(np.vstack([self.comps[c] for c in names]))
+
+
+def prepare_tracks(df: pd.DataFrame, components, min_rows: int = 2) -> Tracks:
+    """:func:`sort_tracks`, then the dense-in-time layout of the tracks with at least ``min_rows`` positions."""
+    components = tuple(components)
+    st = sort_tracks(df, components)
+    n_rows = np.diff(st.off)
+    keep = n_rows >= min_rows
+    if not keep.any():
+        raise UserError(f"every track is shorter than {min_rows} frames (longest: {int(n_rows.max())})",
+                        f"give tracks of at least {min_rows} frames")
+    starts, ends = st.off[:-1], st.off[1:]
+    first = st.frames[starts]
+    span = np.where(keep, st.frames[ends - 1] - first + 1, 0)
+    off = np.zeros(len(starts) + 1, dtype=np.int64)
+    np.cumsum(span, out=off[1:])
+    row_p = np.repeat(np.arange(len(starts)), n_rows)
+    rows_kept = keep[row_p]
+    idx = off[row_p] + st.frames - first[row_p]
+    comps = {}
+    for j, c in enumerate(components):
+        v = np.full(off[-1], np.nan)
+        v[idx[rows_kept]] = st.vals[j][rows_kept]
+        comps[c] = v
+    sel = np.flatnonzero(keep)
+    off_k = np.r_[off[sel], off[-1]].astype(np.int64)
+    return Tracks(particles=st.particles[sel], first=first[sel].astype(np.int64), off=off_k,
+                  comps=comps, dt=st.dt, n_rows=n_rows[sel])
+
+
+def resolve_motion_blur(df: pd.DataFrame, motion_blur=None) -> tuple[float, str]:
+    """The motion-blur parameter R to use for a table, and where it came from.
+
+    In this order: ``motion_blur`` if given; the table's metadata
+    (``motion_blur``, or ``exposure`` / ``frame_interval`` / 6 for a uniform
+    exposure); the data, when the table carries the localiser's precision
+    (``sigma_x``, ``sigma_y`` in m): the CVE's localisation variance
+    ``sigma^2 = R <dx^2> + (2R - 1) <dx_n dx_n+1>`` solved for R with that
+    sigma; else 1/6 (a shutter open the whole frame), said so.
+
+    Returns
+    -------
+    (R, source)
+        R in [0, 1/4) and one of ``"given"``, ``"metadata"``, ``"data"``,
+        ``"default"`` followed by a short explanation.
+
+    Examples
+    --------
+    >>> import pandas as pd
+    >>> resolve_motion_blur(pd.DataFrame({"frame": [0], "t": [0.0], "particle": [0], "x": [0.0], "y": [0.0]}))
+    (0.16666666666666666, 'default: R = 1/6 (shutter open the whole frame) assumed; give --motion-blur')
+    """
+    if motion_blur is not None:
+        return check_motion_blur(motion_blur), "given"
+    meta = df.attrs.get("ptrack", {}) or {}
+    if meta.get("motion_blur") is not None:
+        try:
+            return check_motion_blur(meta["motion_blur"]), "metadata: motion_blur"
+        except UserError:
+            pass
+    if meta.get("exposure") and meta.get("frame_interval"):
+        R = float(meta["exposure"]) / float(meta["frame_interval"]) / 6.0
+        if math.isfinite(R) and 0 <= R <= 1 / 6 + 1e-9:
+            return min(R, 1 / 6), "metadata: exposure / frame interval / 6"
+    R = _blur_from_sigma(df)
+    if R is not None:
+        return R, "data: the localiser's sigma in the CVE's localisation variance"
+    return 1 / 6, "default: R = 1/6 (shutter open the whole frame) assumed; give --motion-blur"
+
+
+def _blur_from_sigma(df: pd.DataFrame):
+    """R implied by the localiser's sigma_x, sigma_y and the pooled step moments (None if not possible)."""
+    comps = [c for c in ("x", "y") if f"sigma_{c}" in df.columns and c in df.columns]
+    if len(comps) < 1 or not {"frame", "particle", "t"} <= set(df.columns):
+        return None
+    try:
+        st = sort_tracks(df, comps)
+    except UserError:
+        return None
+    num = den = 0.0
+    seg = np.repeat(np.arange(len(st.particles)), np.diff(st.off))
+    for j, c in enumerate(comps):
+        v = st.vals[j]
+        s2 = df[f"sigma_{c}"].to_numpy(dtype=float)[st.order]
+        step = (seg[1:] == seg[:-1]) & (np.diff(st.frames) == 1)
+        d = np.where(step, np.diff(v), np.nan)
+        pair = np.isfinite(d[1:]) & np.isfinite(d[:-1])
+        if not np.isfinite(d).sum() or not pair.any() or not np.isfinite(s2).any():
+            return None
+        m2 = float(np.nanmean(d * d))
+        m11 = float(np.mean(d[1:][pair] * d[:-1][pair]))
+        num += float(np.nanmean(s2 * s2)) + m11
+        den += m2 + 2 * m11
+    if not den > 0:
+        return None
+    return float(np.clip(num / den, 0.0, 1 / 6))
