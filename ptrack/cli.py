@@ -115,6 +115,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ptrack {__version__}")
         return 0
     name, rest = argv[0], argv[1:]
+    args = None
     try:
         if name not in COMMANDS:
             raise UserError(f"unknown command '{name}'", "run 'ptrack --help' for the list")
@@ -149,12 +150,21 @@ def main(argv: list[str] | None = None) -> int:
         msg = os_error_message(exc)
         if msg is None:
             raise
-        return _fail("; ".join(msg))
+        cause, fix = msg
+        if not exc.filename and args is not None:  # pyarrow, tifffile... do not say which file
+            outs = [f"--{d.replace('_', '-')} {getattr(args, d)}" for d in _OUTPUT_DESTS if getattr(args, d, None)]
+            if outs:
+                cause += f" (writing {', '.join(outs)})"
+        return _fail(f"{cause}; {fix}")
     except SystemError as exc:
         if _interrupted(exc):
             return _fail("interrupted (Ctrl-C); completed output files are kept, none is half-written",
                          EXIT_INTERRUPTED)
         raise
+
+
+# options that name output files or folders, for messages about a failed write
+_OUTPUT_DESTS = ("out", "report", "json", "plot", "tracks_out")
 
 
 def _fail(message: str, code: int = EXIT_USER_ERROR) -> int:

@@ -118,6 +118,11 @@ OPTIONS: dict[str, Range] = {
                           lo_open=True, hi_open=True),
     "--n-boot": whole(0, "bootstrap resamples; 0: none"),
     "--seed": SEED,
+    # compare
+    "--level": Range("a family-wise error rate between 0 and 1, both excluded (e.g. 0.05)", lo=0.0, hi=1.0,
+                     lo_open=True, hi_open=True),
+    "--n-perm": whole(1, "permutations"),
+    "--min-particles": whole(2, "particles"),
     # velocity
     "--bins": whole(0, "height bins; 0: none"),
     "--contact": finite("height of a particle centre at contact, m"),
@@ -159,6 +164,12 @@ OPTIONS: dict[str, Range] = {
     "--qe": Range("a quantum efficiency above 0, up to 1", lo=0.0, hi=1.0, lo_open=True),
     "--bit-depth": whole(1, "bits", hi=16),
     "--scatter-phase": finite("rad"),
+    # twin
+    "--field": finite("electric field E_z, V/m"),
+    "--density": positive("particle density, kg/m^3"),
+    "--fluid-density": positive("kg/m^3"),
+    "--debye-length": positive("m"),
+    "--permittivity": Range("a relative permittivity >= 1", lo=1.0),
     # studies
     "--replicates": whole(1, "replicates per case"),
     "--particles": whole(1, "particles"),
