@@ -109,15 +109,16 @@ def section_c(movie: bool):
     if not movie:
         print("   (run with --movie for the same from the movie through the pipeline)")
         return
-    from ptrack.mainjob import _camera, _match_truth
+    from ptrack.mainjob import camera_kwargs
+    from ptrack.motion import match_truth
     from ptrack.pipeline import track_movie
 
     t0 = time.perf_counter()
     table, summ = track_movie(d / "movie.tif", calib=d / "calib.tif", calib_z=d / "calib_z.csv", brightfield=True,
-                              progress=False, **_camera(p))
+                              progress=False, **camera_kwargs(p))
     wall = time.perf_counter() - t0
     found = table.reset_index(drop=True)
-    fi, ti = _match_truth(found, truth)
+    fi, ti = match_truth(found, truth)
     err = found.loc[fi, "z"].to_numpy() - truth.loc[ti, "z"].to_numpy()
     zt = truth.loc[ti, "z"].to_numpy()
     print(f"   pipeline (track_movie, brightfield calibration): {wall:.1f} s, {summ['n_localisations']} localisations, "

@@ -17,6 +17,7 @@ folder given as the first argument).
 from __future__ import annotations
 
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -24,12 +25,12 @@ from pathlib import Path
 import numpy as np
 
 from .errors import UserError
-from .msd import estimate_diffusion, stokes_einstein
+from .motion import estimate_diffusion, match_truth, stokes_einstein
 from .table import read_table
 
 ROOT = Path(__file__).resolve().parent.parent
 DATA = ROOT / "data" / "synthetic"
-UM2 = 1e12  # m^2/s -> um^2/s
+UM2 = 1e12  # m^2/s -> µm²/s
 
 
 def _params(name: str) -> dict:
@@ -39,40 +40,33 @@ def _params(name: str) -> dict:
     return json.loads(path.read_text())
 
 
-def _match_truth(found, truth, max_px: float = 2.0):
-    """Pair each found localisation with the nearest true particle in the same frame.
+def verdict(value: float, ref: float, err: float, what: str, limit: float = 3.0) -> str:
+    """One line: how many standard errors ``value`` is from ``ref``, and ok / CHECK at ``limit`` SE.
 
-    Returns arrays (found index, truth index) of pairs closer than ``max_px``.
+    Examples
+    --------
+    >>> verdict(1.02, 1.0, 0.02, "D_xy against the true tracks")
+    'D_xy against the true tracks: +2.0 %, 1.0 SE: ok'
     """
-    from scipy.spatial import cKDTree
-
-    fi, ti = [], []
-    tg = {f: g for f, g in truth.groupby("frame")}
-    for f, g in found.groupby("frame"):
-        if f not in tg:
-            continue
-        t = tg[f]
-        d, j = cKDTree(t[["x_px", "y_px"]].to_numpy()).query(g[["x_px", "y_px"]].to_numpy())
-        ok = d < max_px
-        fi.append(g.index.to_numpy()[ok])
-        ti.append(t.index.to_numpy()[j[ok]])
-    return np.concatenate(fi), np.concatenate(ti)
+    z = abs(value - ref) / err if err > 0 else float("inf")
+    return f"{what}: {100 * (value / ref - 1):+.1f} %, {z:.1f} SE: {'ok' if z <= limit else 'CHECK'}"
 
 
-def _camera(p: dict) -> dict:
+def camera_kwargs(p: dict) -> dict:
     """The camera calibration a user would pass (--gain, --offset, --read-noise), from the dataset's parameters."""
     cam = p.get("camera", {})
     return {k: float(cam[k]) for k in ("gain", "offset", "read_noise") if k in cam}
 
 
 def job_2d(out: Path) -> dict:
-    from .pipeline import analyze_movie
+    from .analysis import analyze_movie
 
     p = _params("diffusion2d")
     # The shipped movies have no motion blur (short exposure): R = 0 for the CVE's localisation variance.
     res = analyze_movie(DATA / "diffusion2d" / "movie.tif", radius=p["radius"], viscosity=p["viscosity"],
                         temperature=p["temperature"], report_dir=out / "diffusion2d",
-                        out=out / "diffusion2d" / "trajectories.parquet", motion_blur=0.0, **_camera(p))
+                        out=out / "diffusion2d" / "trajectories.parquet", motion_blur=0.0,
+                        **camera_kwargs(p)).summary
     truth = read_table(DATA / "diffusion2d" / "truth.parquet")
     if "in_frame" in truth.columns:
         truth = truth[truth["in_frame"].astype(bool)]
@@ -82,7 +76,7 @@ def job_2d(out: Path) -> dict:
     pr = res["D_pairs"] or {"D": {a: float("nan") for a in ("x", "y", "xy")},
                             "D_err": {a: float("nan") for a in ("x", "y", "xy")}, "link_ambiguity": float("nan")}
     print("\n== 2D diffusion movie (data/synthetic/diffusion2d: 130 frames, 10 fps, R = 250 nm in water)")
-    print(f"   tracks: {res['n_tracks']}   D in um^2/s (+- standard error); field-of-view corrected;"
+    print(f"   tracks: {res['n_tracks']}   D in µm²/s (+- standard error); field-of-view corrected;"
           f" link ambiguity {pr['link_ambiguity']:.3f}")
     print(f"   {'axis':<5}{'from tracks':>18}{'linking-free':>18}{'true tracks':>18}{'rendered D':>12}"
           f"{'Stokes-Einstein':>17}")
@@ -92,9 +86,12 @@ def job_2d(out: Path) -> dict:
               f"{ref.D[a] * UM2:>10.4f} +- {ref.D_err[a] * UM2:.4f}{p['D_true'] * UM2:>12.4f}{d_se * UM2:>17.4f}")
     err_true = res["D"]["xy"] / p["D_true"] - 1
     err_tracks = res["D"]["xy"] / ref.D["xy"] - 1
-    print(f"   reported D_xy ({res['D_method']}) = {res['D']['xy'] * UM2:.4f} +- {res['D_err']['xy'] * UM2:.4f} um^2/s:"
+    print(f"   reported D_xy ({res['D_method']}) = {res['D']['xy'] * UM2:.4f} +- {res['D_err']['xy'] * UM2:.4f} µm²/s:"
           f" {100 * err_true:+.2f} % from the rendered D, {100 * err_tracks:+.2f} % from the true tracks"
           f" (standard error {100 * res['D_err']['xy'] / res['D']['xy']:.1f} %)")
+    print("   verdict: " + verdict(res["D"]["xy"], ref.D["xy"], math.hypot(res["D_err"]["xy"], ref.D_err["xy"]),
+                                   f"reported D_xy against the true tracks ({res['n_tracks']} tracks found for "
+                                   f"{truth['particle'].nunique()} true particles in view)"))
     return {"D": res["D"], "D_err": res["D_err"], "D_method": res["D_method"], "D_tracks": res["D_tracks"],
             "D_pairs": res["D_pairs"], "D_true": p["D_true"], "D_truth_tracks": ref.D,
             "D_stokes_einstein": d_se, "n_tracks": res["n_tracks"], "rel_err_vs_true": err_true,
@@ -107,12 +104,12 @@ def job_3d(out: Path) -> dict:
     p = _params("diffusion3d")
     d = DATA / "diffusion3d"
     table, summary = track_movie(d / "movie.tif", out=out / "diffusion3d" / "trajectories.parquet",
-                                 calib=d / "calib.tif", calib_z=d / "calib_z.csv", **_camera(p))
+                                 calib=d / "calib.tif", calib_z=d / "calib_z.csv", **camera_kwargs(p))
     truth = read_table(d / "truth.parquet")
     if "in_frame" in truth.columns:
         truth = truth[truth["in_frame"].astype(bool)].reset_index(drop=True)
     found = table.reset_index(drop=True)
-    fi, ti = _match_truth(found, truth)
+    fi, ti = match_truth(found, truth)
     z_err = found.loc[fi, "z"].to_numpy() - truth.loc[ti, "z"].to_numpy()
     ok = np.isfinite(z_err)
     z_rmse = float(np.sqrt(np.mean(z_err[ok] ** 2))) if ok.any() else float("nan")
@@ -122,7 +119,7 @@ def job_3d(out: Path) -> dict:
     _plot_3d(found.loc[fi], truth.loc[ti], out / "diffusion3d" / "z_vs_truth.png")
     print("\n== 3D diffusion movie with its calibration stack (data/synthetic/diffusion3d, GDPT z)")
     print(f"   localisations matched to truth: recall {recall:.3f}; z RMSE {z_rmse * 1e9:.1f} nm "
-          f"over a {z_span * 1e6:.2f} um span of true heights, median |dz| {np.nanmedian(np.abs(z_err)) * 1e9:.0f} nm")
+          f"over a {z_span * 1e6:.2f} µm span of true heights, median |dz| {np.nanmedian(np.abs(z_err)) * 1e9:.0f} nm")
     if "chi2" in found.columns:
         # chi2: light the fitted templates leave unexplained; high where overlapping images compromise the match
         good = ok & (found.loc[fi, "chi2"].to_numpy() <= 2.0)
@@ -131,34 +128,32 @@ def job_3d(out: Path) -> dict:
     # the true tracks through the same estimator: in z the particles are confined between walls
     # 5 um apart, which lowers the frame-to-frame MSD below 2 D dt
     ref = estimate_diffusion(truth, axes=("x", "y", "z"), estimator="cve", motion_blur=0.0, field_of_view="auto")
-    print("   D (um^2/s): " + "  ".join(f"{a} {res.D[a] * UM2:.3f} +- {res.D_err[a] * UM2:.3f}" for a in ("x", "y", "z"))
+    print("   D (µm²/s): " + "  ".join(f"{a} {res.D[a] * UM2:.3f} +- {res.D_err[a] * UM2:.3f}" for a in ("x", "y", "z"))
           + f"   rendered D {p['D_true'] * UM2:.3f}")
     print("   true tracks: " + "  ".join(f"{a} {ref.D[a] * UM2:.3f}" for a in ("x", "y", "z"))
-          + "   (z confined between walls 5 um apart)")
+          + "   (z confined between walls 5 µm apart: D_z of the true tracks is the reference, not the free D)")
+    for a in ("z", "x", "y"):
+        print("   verdict: " + verdict(res.D[a], ref.D[a], math.hypot(res.D_err[a], ref.D_err[a]),
+                                       f"D_{a} against the true tracks" + (" (confined)" if a == "z" else "")))
     return {"recall": recall, "z_rmse": z_rmse, "D": res.D, "D_err": res.D_err, "D_true": p["D_true"],
             "D_truth_tracks": ref.D, "n_tracks": summary["n_tracks"]}
 
 
 def _plot_3d(found, truth, path: Path) -> None:
     """GDPT check: measured against true z, and the correlation Cm against z."""
-    import matplotlib
+    from .plot import new_figure, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 4.2))
+    fig, (a1, a2) = new_figure(figsize=(10, 4.2), dpi=110, ncols=2)
     zt, zm = truth["z"].to_numpy() * 1e6, found["z"].to_numpy() * 1e6
     a1.plot(zt, zm, ".", ms=2, alpha=0.5)
     lim = [np.nanmin(zt), np.nanmax(zt)]
     a1.plot(lim, lim, "k-", lw=0.8, label="measured = true")
-    a1.set(xlabel="true z (um)", ylabel="measured z (um)", title="z from the calibration stack")
+    a1.set(xlabel="true z (µm)", ylabel="measured z (µm)", title="z from the calibration stack")
     a1.legend()
     a2.plot(zm, found["cm"].to_numpy(), ".", ms=2, alpha=0.5)
-    a2.set(xlabel="measured z (um)", ylabel="correlation Cm", title="GDPT correlation against z", ylim=(0, 1.02))
+    a2.set(xlabel="measured z (µm)", ylabel="correlation Cm", title="GDPT correlation against z", ylim=(0, 1.02))
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def job_brightfield(out: Path) -> dict:
@@ -169,10 +164,10 @@ def job_brightfield(out: Path) -> dict:
     d = DATA / "epd_brightfield"
     od = out / "epd_brightfield"
     table, summary = track_movie(d / "movie.tif", out=od / "trajectories.parquet", calib=d / "calib.tif",
-                                 calib_z=d / "calib_z.csv", brightfield=True, **_camera(p))
+                                 calib_z=d / "calib_z.csv", brightfield=True, **camera_kwargs(p))
     truth = read_table(d / "truth.parquet")
     found = table.reset_index(drop=True)
-    fi, ti = _match_truth(found, truth.reset_index(drop=True))
+    fi, ti = match_truth(found, truth.reset_index(drop=True))
     z_err = found.loc[fi, "z"].to_numpy() - truth.reset_index(drop=True).loc[ti, "z"].to_numpy()
     z_rmse = float(np.sqrt(np.nanmean(z_err ** 2)))
     recall = len(np.unique(ti)) / max(len(truth), 1)
@@ -186,12 +181,15 @@ def job_brightfield(out: Path) -> dict:
     deposited = int(truth.groupby("particle")["deposited"].any().sum()) if "deposited" in truth else 0
     print("\n== Brightfield EPD movie (data/synthetic/epd_brightfield: 20x NA 0.4, dark particles, inverted; "
           "z from its brightfield calibration stack)")
-    print(f"   {summary['n_localisations']} localisations, {summary['n_tracks']} tracks in {summary['n_frames']} frames;"
-          f" recall {recall:.3f}; z RMSE {z_rmse * 1e9:.0f} nm over {p['start_heights'][1] * 1e6:.0f} um of travel")
-    print(f"   drift towards the electrode before contact: v_z = {vz * 1e6:.2f} +- {vz_err * 1e6:.2f} um/s"
-          f" ({len(vel)} tracks); rendered {p['vz_drift'] * 1e6:.2f} um/s (Henry {-p['v_henry'] * 1e6:.2f}"
+    n_true = truth["particle"].nunique()
+    print(f"   {summary['n_localisations']} localisations in {summary['n_frames']} frames; {summary['n_tracks']} tracks"
+          f" found for {n_true} true particles (a track broken by a missed frame counts twice);"
+          f" recall {recall:.3f}; z RMSE {z_rmse * 1e9:.0f} nm over {p['start_heights'][1] * 1e6:.0f} µm of travel")
+    print(f"   drift towards the electrode before contact: v_z = {vz * 1e6:.2f} +- {vz_err * 1e6:.2f} µm/s"
+          f" ({len(vel)} tracks); rendered {p['vz_drift'] * 1e6:.2f} µm/s (Henry {-p['v_henry'] * 1e6:.2f}"
           f" + settling); {(vz / p['vz_drift'] - 1) * 100:+.1f} %, {abs(vz - p['vz_drift']) / vz_err:.1f} SE")
-    print(f"   {deposited}/{truth['particle'].nunique()} particles deposited by the last frame")
+    print(f"   {deposited} of the {n_true} true particles deposited by the last frame")
+    print("   verdict: " + verdict(vz, p["vz_drift"], vz_err, "v_z against the rendered drift"))
     return {"n_localisations": summary["n_localisations"], "n_tracks": summary["n_tracks"], "recall": recall,
             "z_rmse": z_rmse, "vz": vz, "vz_err": vz_err, "vz_rendered": p["vz_drift"], "v_henry": p["v_henry"],
             "deposited": deposited}

@@ -9,7 +9,8 @@ import pytest
 
 from ptrack.errors import UserError
 from ptrack.msd import estimate_diffusion, stokes_einstein
-from ptrack.pipeline import analyze_movie, default_output, track_movie
+from ptrack.analysis import analyze_movie
+from ptrack.pipeline import default_output, track_movie
 from ptrack.table import make_table, read_table, validate
 
 render = pytest.importorskip("sim.render")
@@ -82,7 +83,7 @@ def test_diffusion_matches_truth_tracks(movie):
 def test_analyze_movie_report(movie, tmp_path):
     rep = tmp_path / "rep"
     s = analyze_movie(movie["path"], radius=250e-9, viscosity=1e-3, temperature=293.15, report_dir=rep,
-                      height=2e-6, progress=False, n_boot=50, **_camera(movie))
+                      height=2e-6, progress=False, n_boot=50, **_camera(movie)).summary
     assert s["D_stokes_einstein"] == pytest.approx(stokes_einstein(250e-9, 1e-3, 293.15))
     assert set(s["D"]) == {"x", "y", "xy"} and all(v > 0 for v in s["D_err"].values())
     assert s["D"]["xy"] == pytest.approx(D_TRUE, rel=0.3)
@@ -136,11 +137,21 @@ def test_cli_analyze_and_missing_calibration(movie, tmp_path):
                         "--frame-interval", "0.1", "--radius", "250e-9", "--viscosity", "1e-3", "--temperature", "293.15",
                         "--report", str(rep), "--json", str(tmp_path / "a.json")], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
-    assert "um^2/s" in r.stdout
+    assert "µm²/s" in r.stdout
     s = json.loads((tmp_path / "a.json").read_text())
     assert {"D", "D_err", "D_stokes_einstein", "n_tracks"} <= set(s)
-    # both D estimates and which one is reported; no drift in this movie: the ensemble drift is 0 within errors
-    assert s["D_method"] in ("tracks", "linking-free (pairs)") and set(s["D_tracks"]) == {"x", "y", "xy"}
+    # both D estimates, which one is reported and why: 12 particles in 140 x 140 px link without ambiguity, so
+    # the two agree and the more precise one is reported
+    assert set(s["D_tracks"]) == {"x", "y", "xy"} and s["D_pairs"] is not None
+    assert s["D_pairs"]["link_ambiguity"] < 0.05
+    assert s["D_method_reason"].startswith("the estimates agree")
+    pairs_better = s["D_pairs"]["D_err"]["xy"] < s["D_tracks_err"]["xy"]
+    assert s["D_method"] == ("linking-free (pairs)" if pairs_better else "tracks")
+    assert s["D"]["xy"] == (s["D_pairs"]["D"]["xy"] if pairs_better else s["D_tracks"]["xy"])
+    # the rendered movie has no motion blur, and R comes from the data, said
+    assert s["motion_blur_source"].startswith("data") and s["motion_blur"] < 0.05
+    assert "motion blur R = " in r.stdout
+    # no drift in this movie: the ensemble drift is 0 within errors
     assert set(s["drift_velocity"]) == {"x", "y"}
     for v in s["drift_velocity"].values():
         assert abs(v["v"]) < 4 * v["v_err"]

@@ -39,9 +39,14 @@ from .pairs import PairDiffusionResult, pair_diffusion
 from .stokes import stokes_einstein
 from .synthetic import brownian_field, brownian_tracks, drifting_tracks
 from .tracks import AXES, axis_components, check_motion_blur, frame_interval, parse_axes, resolve_motion_blur
+from .truth import match_truth
+from .velocity import ensemble_velocity, particle_velocity, trim_deposited, velocity_profile
+from .wall import height_from_ratio, hindered_D, parallel_ratio, perpendicular_ratio, unhindered_D
 
 __all__ = ["AXES", "MIN_PARTICLES_BOOTSTRAP", "DiffusionResult", "PairDiffusionResult", "axis_components",
            "brownian_field", "brownian_tracks", "check_motion_blur", "crlb_diffusion", "cve_from_positions",
            "cve_variance", "drifting_tracks", "ensemble_msd", "estimate_diffusion", "frame_interval",
            "msd_from_positions", "ols_from_positions", "optimal_lags", "pair_diffusion", "parse_axes",
-           "particle_diffusion", "particle_msd", "powerlaw_flags", "resolve_motion_blur", "stokes_einstein"]
+           "particle_diffusion", "particle_msd", "powerlaw_flags", "resolve_motion_blur", "stokes_einstein",
+           "match_truth", "ensemble_velocity", "particle_velocity", "trim_deposited", "velocity_profile",
+           "height_from_ratio", "hindered_D", "parallel_ratio", "perpendicular_ratio", "unhindered_D"]

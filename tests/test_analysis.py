@@ -1,0 +1,122 @@
+"""ptrack.analysis: the analysis defaults a new user meets (issue 13) and the all-or-nothing report (issue 15)."""
+import json
+
+import numpy as np
+import pytest
+
+from ptrack.analysis import analyze_movie, analyze_table, choose_D, write_report
+from ptrack.errors import UserError
+from ptrack.motion import brownian_field, brownian_tracks, resolve_motion_blur
+from ptrack.motion.tracks import check_motion_blur
+from ptrack.table import make_table
+
+D0, DT, RADIUS = 8.6e-13, 0.1, 250e-9
+
+
+def _table_3d(z_low=-2.5e-6, z_high=2.5e-6, n_p=30, n_f=60, seed=4):
+    """Brownian tracks in x, y with heights spread between z_low and z_high (m)."""
+    rng = np.random.default_rng(seed)
+    p = brownian_tracks(n_p, n_f, D0, DT, 20e-9, 0.0, n_dims=2, seed=seed)
+    p += rng.uniform(0, 30e-6, (n_p, 1, 2))
+    # heights: a particle near each level, with 50 nm of localisation noise in z
+    z = np.linspace(z_low, z_high, n_p)[:, None] + 50e-9 * rng.standard_normal((n_p, n_f))
+    fr = np.tile(np.arange(n_f), n_p)
+    return make_table(fr, fr * DT, np.repeat(np.arange(n_p), n_f), p[..., 0].ravel(), p[..., 1].ravel(),
+                      z.ravel(), meta={"frame_interval": DT})
+
+
+def test_3d_wall_comes_from_the_data_not_the_focal_plane():
+    a = analyze_table(_table_3d(), RADIUS, 1e-3, 293.15, motion_blur=0.0, n_boot=0)
+    h = a.summary["hindered"]
+    assert h["applied"] and h["wall_z_source"].startswith("from the data")
+    # lowest centre heights (-2.5 um) minus the radius: the wall, to within the 0.5 % quantile's resolution
+    assert h["wall_z_m"] == pytest.approx(-2.5e-6 - RADIUS, abs=0.15e-6)
+    assert h["n_particles_below_contact"] == 0 and 0 < h["mean_ratio_parallel"] < 1
+
+
+def test_particles_below_a_given_wall_stop_the_correction_with_a_message():
+    # the old default: the wall at the focal plane z = 0, half the particles below it
+    a = analyze_table(_table_3d(), RADIUS, 1e-3, 293.15, wall_z=0.0, motion_blur=0.0, n_boot=0)
+    h = a.summary["hindered"]
+    assert h["applied"] is False and "D_bulk_xy" not in h and h["n_particles_below_contact"] >= 14
+    assert any("wall correction not applied" in n and "--wall-z" in n for n in a.notes)
+
+
+@pytest.mark.parametrize("R", [0.0, 1 / 6])
+def test_motion_blur_from_the_data_when_the_table_has_the_localisers_sigma(R):
+    sigma = 30e-9
+    p = brownian_tracks(60, 100, D0, DT, sigma, R, n_dims=2, seed=7)
+    fr = np.tile(np.arange(100), 60)
+    n = fr.size
+    df = make_table(fr, fr * DT, np.repeat(np.arange(60), 100), p[..., 0].ravel(), p[..., 1].ravel(),
+                    meta={"frame_interval": DT}, sigma_x=np.full(n, sigma), sigma_y=np.full(n, sigma))
+    got, source = resolve_motion_blur(df)
+    assert source.startswith("data") and got == pytest.approx(R, abs=0.03)
+    # given beats data; metadata beats data; nothing at all: 1/6, said
+    assert resolve_motion_blur(df, 0.1) == (0.1, "given")
+    df.attrs["ptrack"]["exposure"] = 0.05
+    assert resolve_motion_blur(df) == (pytest.approx(0.05 / DT / 6), "metadata: exposure / frame interval / 6")
+    bare = df.drop(columns=["sigma_x", "sigma_y"])
+    bare.attrs = {}
+    assert resolve_motion_blur(bare)[1].startswith("default")
+
+
+def test_one_motion_blur_range_for_every_estimator():
+    from ptrack.motion import estimate_diffusion, particle_velocity
+
+    df = brownian_field(20, 20e-6, 0.05e12, D0, DT, seed=1)
+    for f in (lambda R: estimate_diffusion(df, motion_blur=R, n_boot=0),
+              lambda R: particle_velocity(df, motion_blur=R),
+              lambda R: brownian_tracks(2, 10, D0, DT, motion_blur=R)):
+        f(0.2)                                                   # inside [0, 1/4) everywhere
+        with pytest.raises(UserError, match=r"outside \[0, 1/4\)"):
+            f(0.25)
+    assert check_motion_blur(0.0) == 0.0
+
+
+@pytest.mark.parametrize("pairs, expected, why", [
+    (None, "tracks", "no linking-free"),
+    ({"D": {"xy": 1.01}, "D_err": {"xy": 0.02}, "link_ambiguity": 0.01}, "linking-free (pairs)", "agree"),
+    ({"D": {"xy": 1.01}, "D_err": {"xy": 0.08}, "link_ambiguity": 0.01}, "tracks", "agree"),
+    ({"D": {"xy": 1.30}, "D_err": {"xy": 0.05}, "link_ambiguity": 0.20}, "linking-free (pairs)", "ambiguous"),
+    ({"D": {"xy": 1.30}, "D_err": {"xy": 0.05}, "link_ambiguity": 0.01}, "tracks", "correlated"),
+])
+def test_which_D_is_reported_and_why(pairs, expected, why):
+    method, reason = choose_D({"xy": 1.0}, {"xy": 0.05}, pairs)
+    assert method == expected and why in reason
+
+
+def test_analyze_checks_every_parameter_before_tracking(tmp_path):
+    # the movie does not exist: a parameter error must come first, before any file is touched
+    with pytest.raises(UserError, match="height"):
+        analyze_movie(tmp_path / "none.tif", radius=1e-6, viscosity=1e-3, temperature=293.15, height=0.5e-6)
+    with pytest.raises(UserError, match="motion_blur"):
+        analyze_movie(tmp_path / "none.tif", radius=1e-6, viscosity=1e-3, temperature=293.15, motion_blur=0.3)
+    with pytest.raises(UserError, match="not a folder"):
+        (tmp_path / "file").write_text("x")
+        analyze_movie(tmp_path / "none.tif", radius=1e-6, viscosity=1e-3, temperature=293.15,
+                      report_dir=tmp_path / "file")
+
+
+def test_interrupted_report_leaves_no_half_report(tmp_path, monkeypatch):
+    from ptrack import plot
+
+    df = brownian_field(40, 30e-6, 0.06e12, D0, DT, sigma=20e-9, seed=3)
+    a = analyze_table(df, RADIUS, 1e-3, 293.15, motion_blur=0.0, n_boot=0)
+    rep = tmp_path / "rep"
+    write_report(a, rep)
+    before = sorted(p.name for p in rep.iterdir())
+    assert {"summary.json", "msd.png", "D_per_particle.png", "per_particle.csv"} <= set(before)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(plot, "plot_D_per_particle", interrupted)    # Ctrl-C after msd.png was written
+    with pytest.raises(KeyboardInterrupt):
+        write_report(a, tmp_path / "new")
+    with pytest.raises(KeyboardInterrupt):
+        write_report(a, rep)
+    assert not (tmp_path / "new").exists()
+    assert sorted(p.name for p in rep.iterdir()) == before             # the previous report, untouched
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+    assert json.loads((rep / "summary.json").read_text())["n_tracks"] == a.summary["n_tracks"]
