@@ -37,9 +37,10 @@ import time
 import numpy as np
 from numba import njit
 
-from sim.forces.contact import (D_MAX_DAMP, D_MAX_OVERLAP, D_MAX_OVERLAP_I, D_MAX_W2, D_N_CONTACTS, D_SIZE,
+from sim.forces.contact import (CONTACT_NONE, D_MAX_DAMP, D_MAX_OVERLAP, D_MAX_OVERLAP_I, D_MAX_W2, D_N_CONTACTS, D_SIZE,
                                 pair_forces, pair_forces_parallel, wall_forces)
 from sim.forces.drag import drag_force_scalar
+from sim.forces.nearfield import LAW_WIDTH, law_row, law_table, wall_law_forces
 from sim.neighbors import _build, carry_history, needs_rebuild, wrap_positions
 
 # The cached kernels below call a parallel=True kernel; when they are loaded from
@@ -61,6 +62,12 @@ STATUS_TEXT = {
 }
 
 DRAG_NONE, DRAG_STOKES, DRAG_SEED = 0, 1, 2
+VERLET, PHI_SCHEME = 0, 1  # integrator codes of _run_chunk
+
+# the ``guards`` array of the kernels: blow-up limits and the fixed-point tolerance
+G_MAX_OVERLAP, G_V_MAX, G_HAS_BOTTOM, G_TOL = 0, 1, 2, 3
+# the ``chunk_peaks`` array: largest values over a run() call
+P_OVERLAP, P_W2, P_DAMP = 0, 1, 2
 
 # --------------------------------------------------------------------------- random numbers
 
@@ -101,12 +108,12 @@ def _external(pos, vel, radius, mass, charge, gamma, fconst, drag_mode, extp, se
         fx = fconst[i, 0]
         fy = fconst[i, 1]
         fz = fconst[i, 2]
-        if drag_mode == 1:
+        if drag_mode == DRAG_STOKES:
             g = gamma[i]
             fx += g * (extp[0] - vel[i, 0])
             fy += g * (extp[1] - vel[i, 1])
             fz += g * (extp[2] - vel[i, 2])
-        elif drag_mode == 2:
+        elif drag_mode == DRAG_SEED:
             dx, dy, dz = drag_force_scalar(extp[0] - vel[i, 0], extp[1] - vel[i, 1], extp[2] - vel[i, 2],
                                            radius[i], extp[3], extp[4])
             fx += dx
@@ -132,7 +139,7 @@ def _external(pos, vel, radius, mass, charge, gamma, fconst, drag_mode, extp, se
 
 @njit(cache=True)
 def _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt,
-            model, cp, cpw, nf_model, nfp, rotation, walls, whist, start, nbj, shift, hist,
+            model, cp, cpw, pair_laws, wall_laws, rotation, walls, whist, start, nbj, shift, hist,
             force, torque, diag, fbuf, tbuf, dbuf):
     force[:, :] = 0.0
     if rotation:
@@ -140,22 +147,24 @@ def _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, ext
     for k in range(D_SIZE):
         diag[k] = 0.0
     _external(pos, vel, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt, force)
-    if model != 0 or nf_model != 0:
+    if model != CONTACT_NONE or pair_laws.shape[0] > 0:
         if fbuf.shape[0] > 1:
             pair_forces_parallel(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist, force, torque,
-                                 model, cp, nf_model, nfp, rotation, dt, diag, fbuf, tbuf, dbuf)
+                                 model, cp, pair_laws, rotation, dt, diag, fbuf, tbuf, dbuf)
         else:
             pair_forces(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist, force, torque,
-                        model, cp, nf_model, nfp, rotation, dt, diag)
-    if walls.shape[0] > 0 and model != 0:
+                        model, cp, pair_laws, rotation, dt, diag)
+    if walls.shape[0] > 0 and model != CONTACT_NONE:
         wall_forces(pos, vel, omega, radius, mass, walls, whist, force, torque, model, cpw, rotation, dt, diag)
+    if walls.shape[0] > 0 and wall_laws.shape[0] > 0:
+        wall_law_forces(pos, radius, charge, walls, wall_laws, force)
 
 
 @njit(cache=True)
-def _check(pos, vel, radius, limits):
+def _check(pos, vel, radius, guards):
     """Return (status, particle) for NaN, substrate crossing, runaway speed."""
-    vmax2 = limits[1] * limits[1]
-    bottom = limits[2] != 0.0
+    vmax2 = guards[G_V_MAX] * guards[G_V_MAX]
+    bottom = guards[G_HAS_BOTTOM] != 0.0
     for i in range(pos.shape[0]):
         z = pos[i, 2]
         v2 = vel[i, 0] * vel[i, 0] + vel[i, 1] * vel[i, 1] + vel[i, 2] * vel[i, 2]
@@ -212,9 +221,9 @@ def rebuild_neighbors(pos, image, radius, cutoff, skin, lo, length, periodic, st
 @njit(cache=True)
 def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
                pos, image, vel, omega, force, torque, radius, mass, inertia, charge, gamma, fconst,
-               drag_mode, extp, seed, model, cp, cpw, nf_model, nfp, rotation, walls, whist,
-               start, nbj, shift, hist, ref_pos, cutoff, skin, lo, length, periodic, limits, diag,
-               dchunk, force_rebuild_at_end, nthreads):
+               drag_mode, extp, seed, model, cp, cpw, pair_laws, wall_laws, rotation, walls, whist,
+               start, nbj, shift, hist, ref_pos, cutoff, skin, lo, length, periodic, guards, diag,
+               chunk_peaks, force_rebuild_at_end, nthreads):
     """Advance up to ``nsteps`` steps.  Returns
     ``(status, steps_done, particle, start, nbj, shift, hist, ref_pos, n_builds)``.
 
@@ -235,7 +244,7 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
         tbuf = np.zeros((1, 0, 3))
     dbuf = np.zeros((max(nthreads, 1), D_SIZE))
     # buffers for the phi-scheme (allocated once per chunk)
-    if integrator == 1:
+    if integrator == PHI_SCHEME:
         x0 = np.empty_like(pos)
         v0 = np.empty_like(vel)
         w0 = np.empty_like(omega)
@@ -249,7 +258,7 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
         t0 = np.empty((0, 3))
     for s in range(nsteps):
         step = step0 + s + 1
-        if integrator == 0:
+        if integrator == VERLET:
             _half_kick(vel, omega, force, torque, mass, inertia, hdt, rotation)
             for i in range(n):
                 pos[i, 0] += dt * vel[i, 0]
@@ -260,7 +269,7 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
                                                             start, nbj, hist, ref_pos)
                 nbuild += 1
             _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt,
-                    model, cp, cpw, nf_model, nfp, rotation, walls, whist, start, nbj, shift, hist,
+                    model, cp, cpw, pair_laws, wall_laws, rotation, walls, whist, start, nbj, shift, hist,
                     force, torque, diag, fbuf, tbuf, dbuf)
             _half_kick(vel, omega, force, torque, mass, inertia, hdt, rotation)
         else:
@@ -282,7 +291,7 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
                 hist[:, :] = hist0
                 whist[:, :] = whist0
                 _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt,
-                        model, cp, cpw, nf_model, nfp, rotation, walls, whist, start, nbj, shift, hist,
+                        model, cp, cpw, pair_laws, wall_laws, rotation, walls, whist, start, nbj, shift, hist,
                         force, torque, diag, fbuf, tbuf, dbuf)
                 change = 0.0
                 vscale = 0.0
@@ -299,7 +308,7 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
                         if rotation:
                             omega[i, c] = w0[i, c] + dt / inertia[i] * (phi * torque[i, c] + (1.0 - phi) * t0[i, c])
                 # fixed-point convergence: relative change of the end-of-step velocities
-                if change <= limits[3] * (vscale + 1e-300):
+                if change <= guards[G_TOL] * (vscale + 1e-300):
                     break
             hist[:, :] = hist0
             whist[:, :] = whist0
@@ -308,17 +317,17 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
                                                             start, nbj, hist, ref_pos)
                 nbuild += 1
             _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt,
-                    model, cp, cpw, nf_model, nfp, rotation, walls, whist, start, nbj, shift, hist,
+                    model, cp, cpw, pair_laws, wall_laws, rotation, walls, whist, start, nbj, shift, hist,
                     force, torque, diag, fbuf, tbuf, dbuf)
-        if diag[D_MAX_OVERLAP] > dchunk[0]:
-            dchunk[0] = diag[D_MAX_OVERLAP]
-        if diag[D_MAX_W2] > dchunk[1]:
-            dchunk[1] = diag[D_MAX_W2]
-        if diag[D_MAX_DAMP] > dchunk[2]:
-            dchunk[2] = diag[D_MAX_DAMP]
-        if diag[D_MAX_OVERLAP] > limits[0]:
+        if diag[D_MAX_OVERLAP] > chunk_peaks[P_OVERLAP]:
+            chunk_peaks[P_OVERLAP] = diag[D_MAX_OVERLAP]
+        if diag[D_MAX_W2] > chunk_peaks[P_W2]:
+            chunk_peaks[P_W2] = diag[D_MAX_W2]
+        if diag[D_MAX_DAMP] > chunk_peaks[P_DAMP]:
+            chunk_peaks[P_DAMP] = diag[D_MAX_DAMP]
+        if diag[D_MAX_OVERLAP] > guards[G_MAX_OVERLAP]:
             return BLOWUP_OVERLAP, s + 1, int(diag[D_MAX_OVERLAP_I]), start, nbj, shift, hist, ref_pos, nbuild
-        st, p = _check(pos, vel, radius, limits)
+        st, p = _check(pos, vel, radius, guards)
         if st != OK:
             return st, s + 1, p, start, nbj, shift, hist, ref_pos, nbuild
     if force_rebuild_at_end:
@@ -348,8 +357,11 @@ class DEMSystem:
         (:mod:`sim.forces.contact`).
     cp, cpw : arrays
         Particle-particle and particle-wall parameters of ``model``.
+    pair_laws, wall_laws : (L, LAW_WIDTH) arrays, optional
+        Non-contact law tables of :mod:`sim.forces.nearfield` (particle-particle
+        and particle-wall; e.g. screened Coulomb, van der Waals).
     nf_model, nfp : int, array
-        Near-field law and parameters (:mod:`sim.forces.nearfield`).
+        One pair law by code and parameters (older form of ``pair_laws``).
     rotation : bool
         Integrate angular velocities (needed whenever tangential forces act).
     walls : (W, 6) array
@@ -380,7 +392,7 @@ class DEMSystem:
     """
 
     def __init__(self, pos, vel, radius, mass, charge=None, *, model=1, cp=None, cpw=None, nf_model=0,
-                 nfp=None, rotation=True, walls=None, box_lo=(0, 0, 0), box_length=(1, 1, 1),
+                 nfp=None, pair_laws=None, wall_laws=None, rotation=True, walls=None, box_lo=(0, 0, 0), box_length=(1, 1, 1),
                  periodic=(0, 0, 0), fconst=None, drag_mode=DRAG_NONE, gamma=None, extp=None, dt=1e-6,
                  skin=None, cutoff=0.0, seed=0, max_overlap=0.5, v_max=np.inf, integrator=0, phi=0.0,
                  n_iter=3, threads=1, tol=1e-10):
@@ -399,8 +411,10 @@ class DEMSystem:
         self.model = int(model)
         self.cp = f64(np.zeros(12) if cp is None else cp)
         self.cpw = f64(self.cp if cpw is None else cpw)
-        self.nf_model = int(nf_model)
-        self.nfp = f64(np.zeros(5) if nfp is None else nfp)
+        if pair_laws is None:
+            pair_laws = law_table(law_row(nf_model, nfp)) if nf_model else law_table()
+        self.pair_laws = f64(np.reshape(pair_laws, (-1, LAW_WIDTH)))
+        self.wall_laws = f64(np.reshape(law_table() if wall_laws is None else wall_laws, (-1, LAW_WIDTH)))
         self.rotation = bool(rotation)
         self.walls = f64(np.zeros((0, 6)) if walls is None else np.reshape(walls, (-1, 6)))
         self.whist = np.zeros((n * len(self.walls), 3))
@@ -415,7 +429,7 @@ class DEMSystem:
         self.cutoff = float(cutoff)
         self.skin = float(0.2 * self.radius.min() if skin is None else skin)
         self.seed = int(seed)
-        self.limits = f64([max_overlap, v_max, 1.0 if self._has_bottom() else 0.0, tol])
+        self.guards = f64([max_overlap, v_max, 1.0 if self._has_bottom() else 0.0, tol])  # G_* indices
         self.integrator = int(integrator)
         self.phi = float(phi)
         self.n_iter = int(n_iter)
@@ -424,7 +438,7 @@ class DEMSystem:
         self.t = 0.0
         self.n_builds = 0
         self.diag = np.zeros(D_SIZE)
-        self.dchunk = np.zeros(3)
+        self.chunk_peaks = np.zeros(3)  # P_* indices
         self.status = OK
         self.fail_particle = -1
         from sim.neighbors import wrap_positions as _wrap
@@ -458,7 +472,7 @@ class DEMSystem:
         """Evaluate forces and torques at the current state (updates contact history)."""
         _forces(self.pos, self.vel, self.omega, self.radius, self.mass, self.charge, self.gamma, self.fconst,
                 self.drag_mode, self.extp, self.seed, self.step, self.dt, self.model, self.cp, self.cpw,
-                self.nf_model, self.nfp, self.rotation, self.walls, self.whist, self.start, self.nbj,
+                self.pair_laws, self.wall_laws, self.rotation, self.walls, self.whist, self.start, self.nbj,
                 self.shift, self.hist, self.force, self.torque, self.diag, *self._buffers())
 
     def _buffers(self):
@@ -472,26 +486,47 @@ class DEMSystem:
         """Unwrapped positions (m), continuous across periodic boundaries."""
         return self.pos + self.image * self.length[None, :]
 
-    def run(self, nsteps, rebuild_at_end=False):
+    def run(self, nsteps, rebuild_at_end=False, poll=None, chunker=None):
         """Advance ``nsteps`` steps; returns the status code (0 = fine).
 
         On a blow-up the state is left at the failing step and
-        ``self.fail_particle`` names the particle.
+        ``self.fail_particle`` names the particle. ``self.chunk_peaks`` holds the
+        largest overlap ratio, k/m and eta/m met over these steps.
+
+        With ``chunker`` (:class:`sim.driver.WallClockChunker`) the steps are
+        taken in kernel calls of bounded wall time and ``poll()`` is called
+        between them (it may raise, e.g. on a signal); the result is
+        bit-identical to one call (the kernel carries no per-call state but its
+        buffers, and the end-of-run rebuild is done in the last call only).
         """
-        self.dchunk = np.zeros(3)
-        out = _run_chunk(int(nsteps), self.dt, self.step, self.integrator, self.phi, self.n_iter,
-                         self.pos, self.image, self.vel, self.omega, self.force, self.torque, self.radius,
-                         self.mass, self.inertia, self.charge, self.gamma, self.fconst, self.drag_mode,
-                         self.extp, self.seed, self.model, self.cp, self.cpw, self.nf_model, self.nfp,
-                         self.rotation, self.walls, self.whist, self.start, self.nbj, self.shift, self.hist,
-                         self.ref_pos, self.cutoff, self.skin, self.lo, self.length, self.periodic, self.limits,
-                         self.diag, self.dchunk, bool(rebuild_at_end), int(self.threads))
-        status, done, part, self.start, self.nbj, self.shift, self.hist, self.ref_pos, nb = out
-        self.step += done
-        self.t += done * self.dt
-        self.n_builds += nb
-        self.status = status
-        self.fail_particle = part
+        self.chunk_peaks = np.zeros(3)
+        left = int(nsteps)
+        status = OK
+        while left > 0:
+            k = left if chunker is None else min(left, chunker.size)
+            if chunker is not None:
+                chunker.start()
+            out = _run_chunk(k, self.dt, self.step, self.integrator, self.phi, self.n_iter,
+                             self.pos, self.image, self.vel, self.omega, self.force, self.torque, self.radius,
+                             self.mass, self.inertia, self.charge, self.gamma, self.fconst, self.drag_mode,
+                             self.extp, self.seed, self.model, self.cp, self.cpw, self.pair_laws,
+                             self.wall_laws, self.rotation, self.walls, self.whist, self.start, self.nbj,
+                             self.shift, self.hist, self.ref_pos, self.cutoff, self.skin, self.lo, self.length,
+                             self.periodic, self.guards, self.diag, self.chunk_peaks,
+                             bool(rebuild_at_end) and k == left, int(self.threads))
+            status, done, part, self.start, self.nbj, self.shift, self.hist, self.ref_pos, nb = out
+            if chunker is not None:
+                chunker.done(done * self.n)
+            self.step += done
+            self.t += done * self.dt
+            self.n_builds += nb
+            self.status = status
+            self.fail_particle = part
+            left -= done
+            if status != OK:
+                return status
+            if poll is not None and left > 0:
+                poll()
         return status
 
     # ------------------------------------------------------------------ state I/O
@@ -593,7 +628,7 @@ def _power_force(cp, delta, ri, rj, wall):
     return cp[0] * eps ** cp[1] * area, area
 
 
-def auto_dt(inter, radius, mass, fconst, gamma=None, drag=False, v0=None, height=1.0, n_layers=None):
+def auto_dt(inter, radius, mass, fconst, gamma=None, drag=False, v0=None, height=1.0, n_layers=None, charge=None):
     """Time step (s) from the physics, and a dict saying why.
 
     * contact: ``dt_safety`` x the velocity-Verlet stability limit of the
@@ -602,6 +637,11 @@ def auto_dt(inter, radius, mass, fconst, gamma=None, drag=False, v0=None, height
       overlap - the larger of the impact overlap, from the kinetic energy of a
       particle that falls ``height`` under the external force, and the static
       overlap under ``n_layers`` particles' weight);
+    * non-contact laws (near-field, van der Waals...): ``dt_safety`` x the
+      stability limit of their largest stiffness |dF/dr| near contact
+      (:func:`sim.forces.nearfield.law_scales`, sampled, law-agnostic); their
+      largest force sets ``law_speed`` (terminal speed with drag), which the
+      run's runaway-speed guard allows for;
     * drag: ``0.2 m / gamma`` (momentum relaxation time);
     * motion: a particle moves at most 5 % of the smallest radius per step.
     """
@@ -639,6 +679,19 @@ def auto_dt(inter, radius, mass, fconst, gamma=None, drag=False, v0=None, height
             continue
         why[f"{'wall' if wall else 'pair'}_critical_dt"] = dc
         dts.append(inter.dt_safety * dc)
+    if len(inter.pair_laws) or len(inter.wall_laws):
+        from sim.forces.nearfield import law_scales
+
+        fl, kl = law_scales(inter.pair_laws, inter.wall_laws, radius, np.zeros(1) if charge is None else charge)
+        if kl > 0:
+            dc = critical_step(kl / (0.5 * mmin), 0.0)
+            why["law_critical_dt"] = dc
+            dts.append(inter.dt_safety * dc)
+        if fl > 0:
+            if drag and gamma is not None and np.all(np.asarray(gamma) > 0):
+                why["law_speed"] = fl / float(np.min(gamma))
+            else:
+                why["law_speed"] = math.sqrt(fl * 0.2 * rmin / mmin)
     if drag and gamma is not None and np.all(np.asarray(gamma) > 0):
         tr = float(np.min(mass / gamma))
         why["momentum_relaxation_time"] = tr
@@ -652,8 +705,8 @@ def auto_dt(inter, radius, mass, fconst, gamma=None, drag=False, v0=None, height
 
 
 def system_from_scene(scene, state=None, dt=None):
-    """Build a :class:`DEMSystem` for a scene with pair interactions."""
-    from sim.scene import build_state, constant_force
+    """Build a :class:`DEMSystem` for a scene with pair interactions; returns ``(system, state)``."""
+    from sim.state import build_state, constant_force
 
     inter = scene.interactions
     st = build_state(scene) if state is None else state
@@ -662,13 +715,14 @@ def system_from_scene(scene, state=None, dt=None):
     drag_mode = DRAG_SEED if fl.viscosity > 0 else DRAG_NONE
     extp = np.array([*fl.velocity, fl.density, fl.viscosity, scene.kT, *scene.fields.B], dtype=np.float64)
     periodic = (int(scene.boundaries.x == "periodic"), int(scene.boundaries.y == "periodic"), 0)
-    sysm = DEMSystem(st.pos, st.vel, st.radius, st.mass, st.charge, model=inter.model, cp=inter.cp, cpw=inter.cpw,
-                     nf_model=inter.nf_model, nfp=inter.nfp, rotation=inter.rotation, walls=scene_walls(scene),
-                     box_lo=(0, 0, 0), box_length=scene.domain.size, periodic=periodic, fconst=fconst,
-                     drag_mode=drag_mode, gamma=st.gamma, extp=extp, dt=1e-9 if dt is None else dt,
-                     skin=inter.skin, cutoff=inter.cutoff, seed=scene.seed, max_overlap=inter.max_overlap,
-                     **_integrator_options(scene))
-    return sysm, st
+    system = DEMSystem(st.pos, st.vel, st.radius, st.mass, st.charge, model=inter.model, cp=inter.cp,
+                       cpw=inter.cpw, pair_laws=inter.pair_laws, wall_laws=inter.wall_laws,
+                       rotation=inter.rotation, walls=scene_walls(scene), box_lo=(0, 0, 0),
+                       box_length=scene.domain.size, periodic=periodic, fconst=fconst, drag_mode=drag_mode,
+                       gamma=st.gamma, extp=extp, dt=1e-9 if dt is None else dt, skin=inter.skin,
+                       cutoff=inter.cutoff, seed=scene.seed, max_overlap=inter.max_overlap,
+                       **_integrator_options(scene))
+    return system, st
 
 
 def _integrator_options(scene):
@@ -676,19 +730,19 @@ def _integrator_options(scene):
     fixed-point iterations; everything else uses velocity Verlet."""
     it = scene.integrator
     if it.kind == "trapezoidal":
-        return dict(integrator=1, phi=it.phi, n_iter=it.max_iterations, tol=it.tolerance)
-    return dict(integrator=0)
+        return dict(integrator=PHI_SCHEME, phi=it.phi, n_iter=it.max_iterations, tol=it.tolerance)
+    return dict(integrator=VERLET)
 
 
-def _frame_df(frame, sysm):
-    n = sysm.n
-    up = sysm.unwrapped
+def _frame_df(frame, system):
+    n = system.n
+    up = system.unwrapped
     import pandas as pd
 
     return pd.DataFrame({
-        "frame": np.full(n, frame, dtype=np.int64), "t": np.full(n, sysm.t), "particle": np.arange(n, dtype=np.int64),
+        "frame": np.full(n, frame, dtype=np.int64), "t": np.full(n, system.t), "particle": np.arange(n, dtype=np.int64),
         "x": up[:, 0], "y": up[:, 1], "z": up[:, 2],
-        "vx": sysm.vel[:, 0], "vy": sysm.vel[:, 1], "vz": sysm.vel[:, 2], "radius": sysm.radius.copy(),
+        "vx": system.vel[:, 0], "vy": system.vel[:, 1], "vz": system.vel[:, 2], "radius": system.radius.copy(),
     })
 
 
@@ -727,10 +781,13 @@ def run_dem(scene, out_dir, resume=False, progress=True, checkpoint_every=None, 
         Receives ``trajectories.parquet`` (frame, t, particle, x, y, z
         unwrapped, vx, vy, vz, radius), ``scene.json`` (resolved scene, dt and
         why), ``checkpoint.npz`` (every ``checkpoint_every`` frames) and, on a
-        blow-up, ``last_good_state.npz``.
+        blow-up, ``last_good_state.npz``. A folder holding an earlier run gets
+        that run's files moved into ``previous-N/`` (:func:`sim.driver.prepare_out_dir`).
     resume : bool
         Continue from ``out_dir/checkpoint.npz``; the result equals the
-        uninterrupted run bit for bit.
+        uninterrupted run bit for bit. The checkpoint, its committed table
+        segments and the scene (with its seed) must belong together, else the
+        resume is refused and nothing is written.
     progress : bool
         tqdm bar on stderr.
     checkpoint_every : int, optional
@@ -746,7 +803,12 @@ def run_dem(scene, out_dir, resume=False, progress=True, checkpoint_every=None, 
         Blow-up (overlap, NaN, substrate crossing, runaway speed) naming the
         step, the particle and a suggested dt; the frames so far stay in the
         trajectories file (marked incomplete) and the last good state is in
-        ``last_good_state.npz``.
+        ``last_good_state.npz``. Overlapping particles at the start (blamed on
+        the placement). A resume without a matching checkpoint.
+    KeyboardInterrupt
+        SIGINT or SIGTERM: the frames so far are in the table (marked
+        incomplete) and the last checkpoint with its segments is kept for
+        ``resume``.
     """
     import json
     import sys
@@ -755,120 +817,165 @@ def run_dem(scene, out_dir, resume=False, progress=True, checkpoint_every=None, 
     from tqdm import tqdm
 
     from ptrack.errors import UserError, atomic_output
-    from ptrack.table import TrajectoryWriter, read_table
     from sim.checkpoint import load_checkpoint, save_checkpoint, scene_fingerprint
+    from sim.driver import (InterruptGuard, SegmentedTable, WallClockChunker, discard_if_empty,
+                            prepare_out_dir)
 
     t_wall = time.perf_counter()
     inter = scene.interactions
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    ck_every = inter.checkpoint_every if checkpoint_every is None else int(checkpoint_every)
-    sysm, st = system_from_scene(scene)
-    fixed_dt = scene.time.dt is not None
-    dt_auto, why = auto_dt(inter, st.radius, st.mass, sysm.fconst, st.gamma, drag=sysm.drag_mode != DRAG_NONE,
-                           v0=st.vel, height=float(np.max(st.pos[:, 2])) if st.n else 1.0)
-    dt0 = scene.time.dt if fixed_dt else dt_auto
-    sysm.dt = dt0
-    # runaway-speed limit: 20x the largest speed the external forces, the initial
-    # velocities and thermal motion can explain
-    v_ref = max(why.get("impact_speed", 0.0), float(np.max(np.linalg.norm(st.vel, axis=1))) if st.n else 0.0,
-                5.0 * math.sqrt(scene.kT / float(np.min(st.mass))) if scene.kT > 0 else 0.0)
-    if v_ref > 0:
-        sysm.limits[1] = 20.0 * v_ref
-    why["v_max"] = float(sysm.limits[1])
-    sdict = scene.to_dict()
-    fp = scene_fingerprint(sdict)
-    n_out = int(round(scene.time.final / scene.time.output_interval))
-    dt_out = scene.time.output_interval
     traj_path = out_dir / "trajectories.parquet"
     ck_path = out_dir / "checkpoint.npz"
+    scene_json = out_dir / "scene.json"
+    sdict = scene.to_dict()
+    fp = scene_fingerprint(sdict)  # covers the seed (a scene field)
+    data = head = None
+    if resume:
+        # refused at once, before any work or any write
+        data, head = load_checkpoint(ck_path, fp)
+        if not (out_dir / ".segments").is_dir():
+            raise UserError(f"{out_dir} has a checkpoint but no committed table segments (the run finished, "
+                            "or it was written by an older version)", "rerun without --resume")
+        created = False
+    else:
+        created = prepare_out_dir(out_dir)
+    try:
+        system, st = system_from_scene(scene)
+        _check_start(system, inter)
+    except UserError:
+        discard_if_empty(out_dir, created)
+        raise
+    ck_every = inter.checkpoint_every if checkpoint_every is None else int(checkpoint_every)
+    fixed_dt = scene.time.dt is not None
+    dt_auto, why = auto_dt(inter, st.radius, st.mass, system.fconst, st.gamma, drag=system.drag_mode != DRAG_NONE,
+                           v0=st.vel, height=float(np.max(st.pos[:, 2])) if st.n else 1.0, charge=st.charge)
+    dt0 = scene.time.dt if fixed_dt else dt_auto
+    system.dt = dt0
+    # runaway-speed limit: 20x the largest speed the external forces, the non-contact laws, the initial
+    # velocities and thermal motion can explain
+    v_ref = max(why.get("impact_speed", 0.0), why.get("law_speed", 0.0),
+                float(np.max(np.linalg.norm(st.vel, axis=1))) if st.n else 0.0,
+                5.0 * math.sqrt(scene.kT / float(np.min(st.mass))) if scene.kT > 0 else 0.0)
+    if v_ref > 0:
+        system.guards[G_V_MAX] = 20.0 * v_ref
+    why["v_max"] = float(system.guards[G_V_MAX])
+    n_out = int(round(scene.time.final / scene.time.output_interval))
+    dt_out = scene.time.output_interval
     resolved = {"scene": sdict, "engine": "dem", "contact_model": inter.model_name,
-                "integrator": "phi-scheme (seed eq. 3.28-3.29, fixed-point)" if sysm.integrator == 1 else "velocity Verlet",
+                "integrator": "phi-scheme (seed eq. 3.28-3.29, fixed-point)" if system.integrator == PHI_SCHEME
+                else "velocity Verlet",
                 "dt": dt0, "dt_mode": "fixed (time.dt)" if fixed_dt else "auto + adaptive" if inter.adaptive_dt else "auto",
                 "dt_reason": why, "n_output_frames": n_out + 1, "units": "SI",
                 "coordinates": "unwrapped across periodic sides"}
-    scene_json = out_dir / "scene.json"
-    with atomic_output(scene_json, "w") as fh:
-        json.dump(resolved, fh, indent=2, default=float)
     meta = {"source": "sim-dem", "frame_interval": dt_out, "scene": scene.source, "dt": dt0, "seed": scene.seed,
-            "contact_model": inter.model_name}
+            "contact_model": inter.model_name, "run": fp}
     frame = 0
     resumed_from = None
-    old = None
     if resume:
-        data, head = load_checkpoint(ck_path, fp)
-        sysm.set_state(data)
+        table = SegmentedTable(out_dir, meta, committed=head.get("segments", []))
+        table.check_committed(fp, int(head["frame"]))
+        system.set_state(data)
         frame = int(head["frame"])
-        resumed_from = sysm.step
-        if traj_path.exists():
-            old = read_table(traj_path, validate_table=False)
-            old = old[old["frame"] <= frame]
-    writer = TrajectoryWriter(traj_path, meta)
+        resumed_from = system.step
+    else:
+        table = SegmentedTable(out_dir, meta)
+    with atomic_output(scene_json, "w") as fh:
+        json.dump(resolved, fh, indent=2, default=float)
     bar = tqdm(total=n_out, initial=frame, desc="dem", unit="frame", disable=not progress, file=sys.stderr)
-    summary = {"steps": 0, "dt_min": sysm.dt, "dt_max": sysm.dt, "max_overlap_ratio": 0.0, "rollbacks": 0,
+    summary = {"steps": 0, "dt_min": system.dt, "dt_max": system.dt, "max_overlap_ratio": 0.0, "rollbacks": 0,
                "n_builds": 0}
+    chunker = WallClockChunker(first=max(1, 200_000 // max(system.n, 1)))
+    guard = InterruptGuard()
     try:
-        if old is not None and len(old):
-            writer.append(old.reset_index(drop=True)[["frame", "t", "particle", "x", "y", "z", "vx", "vy", "vz", "radius"]])
-        else:
-            writer.append(_frame_df(0, sysm))
-        while frame < n_out:
-            t_next = (frame + 1) * dt_out
-            good = sysm.get_state()
-            good_dt = sysm.dt
-            tries = 0
-            while True:
-                nsteps = max(1, int(round((t_next - sysm.t) / sysm.dt)))
-                is_ck = ck_every > 0 and (frame + 1) % ck_every == 0
-                status = sysm.run(nsteps, rebuild_at_end=is_ck)
-                if status == OK:
-                    break
-                bad_step, bad_p = sysm.step, sysm.fail_particle
-                crit = critical_step(sysm.dchunk[1], sysm.dchunk[2])
-                suggest = min(sysm.dt / 4.0, inter.dt_safety * crit)
-                if fixed_dt or not inter.adaptive_dt or tries >= max_rollbacks:
-                    sysm.set_state(good)
-                    sysm.dt = good_dt
-                    np.savez(out_dir / "last_good_state.npz", **good)
-                    reason = STATUS_TEXT[status]
-                    writer.close(failed=f"blow-up at step {bad_step}: {reason}")
-                    raise UserError(
-                        f"DEM blow-up at step {bad_step} (t = {bad_step * good_dt:.6g} s): {reason}, particle {bad_p} "
-                        f"(dt = {good_dt:.3g} s); frames so far in {traj_path}, last good state in "
-                        f"{out_dir / 'last_good_state.npz'}",
-                        f"reduce time.dt to about {suggest:.2g} s or use time.dt = \"auto\"")
-                # adaptive: roll back to the start of the frame and retry with a smaller step
-                sysm.set_state(good)
-                sysm.dt = min(good_dt, suggest) if tries == 0 else sysm.dt * 0.5
-                tries += 1
-                summary["rollbacks"] += 1
-            frame += 1
-            summary["max_overlap_ratio"] = max(summary["max_overlap_ratio"], float(sysm.dchunk[0]))
-            writer.append(_frame_df(frame, sysm))
-            if is_ck:
-                save_checkpoint(ck_path, sysm.get_state(), {"frame": frame, "fingerprint": fp, "seed": scene.seed})
-            if not fixed_dt and inter.adaptive_dt:
-                crit = critical_step(sysm.dchunk[1], sysm.dchunk[2])
-                vmax = float(np.sqrt(np.max(np.sum(sysm.vel**2, axis=1)))) if sysm.n else 0.0
-                # shrink when the contacts present are stiffer than the a-priori
-                # estimate; never grow beyond it (new impacts come unannounced)
-                target = min(inter.dt_safety * crit, 0.05 * float(np.min(sysm.radius)) / max(vmax, 1e-300), dt0)
-                sysm.dt = float(min(target, 1.25 * sysm.dt))
-            summary["dt_min"] = min(summary["dt_min"], sysm.dt)
-            summary["dt_max"] = max(summary["dt_max"], sysm.dt)
-            bar.update(1)
+        with guard:
+            table.open(frame + 1 if resume else 0)
+            if not resume:
+                table.append(_frame_df(0, system))
+            while frame < n_out:
+                t_next = (frame + 1) * dt_out
+                good = system.get_state()
+                good_dt = system.dt
+                tries = 0
+                while True:
+                    nsteps = max(1, int(round((t_next - system.t) / system.dt)))
+                    is_ck = ck_every > 0 and (frame + 1) % ck_every == 0
+                    status = system.run(nsteps, rebuild_at_end=is_ck, poll=guard.check, chunker=chunker)
+                    if status == OK:
+                        break
+                    bad_step, bad_p = system.step, system.fail_particle
+                    crit = critical_step(system.chunk_peaks[P_W2], system.chunk_peaks[P_DAMP])
+                    suggest = min(system.dt / 4.0, inter.dt_safety * crit)
+                    if fixed_dt or not inter.adaptive_dt or tries >= max_rollbacks:
+                        system.set_state(good)
+                        system.dt = good_dt
+                        np.savez(out_dir / "last_good_state.npz", **good)
+                        reason = STATUS_TEXT[status]
+                        table.finish(traj_path, meta, failed=f"blow-up at step {bad_step}: {reason}")
+                        if fixed_dt:
+                            fix = f"reduce time.dt to about {suggest:.2g} s or use time.dt = \"auto\""
+                        else:
+                            # dt is automatic already: advising "auto" would be circular
+                            fix = (f"the automatic dt ({good_dt:.3g} s, {tries} rollbacks) did not resolve it: lower "
+                                   f"contact.dt_safety (now {inter.dt_safety:g}), or check the stiffness, charges and "
+                                   "fields of the scene")
+                        raise UserError(
+                            f"DEM blow-up at step {bad_step} (t = {bad_step * good_dt:.6g} s): {reason}, particle "
+                            f"{bad_p} (dt = {good_dt:.3g} s); frames so far in {traj_path}, last good state in "
+                            f"{out_dir / 'last_good_state.npz'}", fix)
+                    # adaptive: roll back to the start of the frame and retry with a smaller step
+                    system.set_state(good)
+                    system.dt = min(good_dt, suggest) if tries == 0 else system.dt * 0.5
+                    tries += 1
+                    summary["rollbacks"] += 1
+                frame += 1
+                summary["max_overlap_ratio"] = max(summary["max_overlap_ratio"], float(system.chunk_peaks[P_OVERLAP]))
+                table.append(_frame_df(frame, system))
+                if is_ck:
+                    # the segment first (a complete file), then the checkpoint that lists it: a kill between
+                    # the two leaves a segment no checkpoint names, which the resume deletes
+                    names = table.commit()
+                    save_checkpoint(ck_path, system.get_state(), {"frame": frame, "fingerprint": fp,
+                                                                  "seed": scene.seed, "segments": names})
+                    if frame < n_out:
+                        table.open(frame + 1)
+                if not fixed_dt and inter.adaptive_dt:
+                    crit = critical_step(system.chunk_peaks[P_W2], system.chunk_peaks[P_DAMP])
+                    vmax = float(np.sqrt(np.max(np.sum(system.vel**2, axis=1)))) if system.n else 0.0
+                    # shrink when the contacts present are stiffer than the a-priori
+                    # estimate; never grow beyond it (new impacts come unannounced)
+                    target = min(inter.dt_safety * crit, 0.05 * float(np.min(system.radius)) / max(vmax, 1e-300), dt0)
+                    system.dt = float(min(target, 1.25 * system.dt))
+                summary["dt_min"] = min(summary["dt_min"], system.dt)
+                summary["dt_max"] = max(summary["dt_max"], system.dt)
+                bar.update(1)
+                guard.check()
     except UserError:
         raise
     except BaseException as exc:
-        writer.close(failed=f"{type(exc).__name__}: {exc}")
+        why_stop = f"interrupted ({exc})" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}"
+        table.finish(traj_path, meta, failed=why_stop)
         raise
     finally:
         bar.close()
-    writer.close()
+    table.finish(traj_path, meta)
     wall = time.perf_counter() - t_wall
-    summary.update({"steps": int(sysm.step), "wall_time_s": wall, "n_frames": n_out + 1, "dt_final": sysm.dt,
-                    "n_builds": int(sysm.n_builds), "resumed_from_step": resumed_from,
-                    "n_particles": int(sysm.n)})
+    summary.update({"steps": int(system.step), "wall_time_s": wall, "n_frames": n_out + 1, "dt_final": system.dt,
+                    "n_builds": int(system.n_builds), "resumed_from_step": resumed_from,
+                    "n_particles": int(system.n)})
     with atomic_output(out_dir / "dem_summary.json", "w") as fh:
         json.dump(summary, fh, indent=2, default=float)
-    return DEMResult(traj_path, scene_json, n_out + 1, wall, summary, sysm)
+    return DEMResult(traj_path, scene_json, n_out + 1, wall, summary, system)
+
+
+def _check_start(system, inter):
+    """Refuse a start whose particles already overlap beyond the blow-up limit (a placement problem,
+    not a time-step one)."""
+    from ptrack.errors import UserError
+
+    ov = float(system.diag[D_MAX_OVERLAP])
+    if ov > inter.max_overlap:
+        i = int(system.diag[D_MAX_OVERLAP_I])
+        raise UserError(f"the starting positions overlap: particle {i} overlaps a neighbour or a wall by {ov:.3g} "
+                        f"of its radius (limit contact.max_overlap = {inter.max_overlap:g})",
+                        "place the particles without overlap: a larger domain or placement_z range, fewer "
+                        "particles, or a smaller radius_variation")

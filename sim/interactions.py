@@ -73,7 +73,13 @@ import numpy as np
 from ptrack.errors import UserError
 from sim.validate import missing as _missing, number as _num  # one validator for every scene key
 from sim.forces.contact import CONTACT_HOOKE, CONTACT_NONE, CONTACT_POWER, hooke_params, power_params
-from sim.forces.nearfield import NF_NONE, NF_SEED, NF_YUKAWA, yukawa_prefactor
+from sim.forces import vdw
+from sim.forces.nearfield import NF_NONE, NF_SEED, NF_YUKAWA, law_row, law_table, yukawa_prefactor
+
+# Non-contact laws that are one file each: [section] -> module with SECTION, KEYS, CODE, WALL (acts on
+# the wall planes too) and parse_section(sec, scene) -> (parameter row, reach in m). A new law of this
+# kind adds one entry here and one branch in sim.forces.nearfield's dispatchers.
+LAW_SECTIONS = {vdw.SECTION: vdw}
 
 _ALLOWED = {
     "contact": ("model", "kn", "restitution", "kt", "tangential_damping_ratio", "K", "exponent", "damping",
@@ -83,7 +89,9 @@ _ALLOWED = {
     "nearfield": ("model", "alpha1", "alpha2", "beta1", "beta2", "surface_potential", "debye_length", "cutoff"),
     "walls": ("kn", "restitution", "kt", "mu", "K", "exponent", "damping", "K_nb", "K_rb", "K_f", "mu_s", "mu_d",
               "tangential_damping_ratio"),
+    **{name: mod.KEYS for name, mod in LAW_SECTIONS.items()},
 }
+SECTIONS = tuple(_ALLOWED)  # every pair-interaction section a scene may hold
 
 
 @dataclass
@@ -98,9 +106,11 @@ class Interactions:
         Particle-particle and particle-wall parameters (see :mod:`sim.forces.contact`).
     friction, bonding : bool
     nf_model : int; nfp : ndarray
-        Near-field law and parameters (see :mod:`sim.forces.nearfield`).
+        The [nearfield] law and parameters (see :mod:`sim.forces.nearfield`).
+    law_rows, wall_law_rows : list of ndarray
+        Rows of the other non-contact laws (``LAW_SECTIONS``), pairs and walls.
     cutoff : float
-        Near-field cut-off (m), 0 without near-field.
+        Largest centre-to-centre reach of a non-contact law (m), 0 without one.
     skin, dt_safety, max_overlap : float
     adaptive_dt : bool
     checkpoint_every : int
@@ -114,6 +124,8 @@ class Interactions:
     bonding: bool = False
     nf_model: int = NF_NONE
     nfp: np.ndarray = field(default_factory=lambda: np.zeros(5))
+    law_rows: list = field(default_factory=list)
+    wall_law_rows: list = field(default_factory=list)
     cutoff: float = 0.0
     skin: float | None = None
     dt_safety: float = 0.2
@@ -125,7 +137,18 @@ class Interactions:
     @property
     def any_pair_force(self) -> bool:
         """True when some particle-particle or particle-wall force is switched on."""
-        return self.model != CONTACT_NONE or self.nf_model != NF_NONE
+        return self.model != CONTACT_NONE or len(self.pair_laws) > 0 or len(self.wall_laws) > 0
+
+    @property
+    def pair_laws(self) -> np.ndarray:
+        """Law table (L, LAW_WIDTH) of the particle-particle non-contact laws."""
+        rows = ([law_row(self.nf_model, self.nfp)] if self.nf_model != NF_NONE else []) + list(self.law_rows)
+        return law_table(*rows)
+
+    @property
+    def wall_laws(self) -> np.ndarray:
+        """Law table (L, LAW_WIDTH) of the particle-wall non-contact laws."""
+        return law_table(*self.wall_law_rows)
 
     @property
     def rotation(self) -> bool:
@@ -290,6 +313,13 @@ def parse_interactions(raw: dict, scene=None) -> Interactions:
         else:
             raise UserError(f"scene key nearfield.model = {nm!r} is not allowed", 'give "seed" or "yukawa"')
         it.cutoff = cutoff
+    for name, mod in LAW_SECTIONS.items():
+        if name in raw:
+            row, reach = mod.parse_section(raw[name], scene)
+            it.law_rows.append(law_row(mod.CODE, row))
+            if mod.WALL:
+                it.wall_law_rows.append(law_row(mod.CODE, row))
+            it.cutoff = max(it.cutoff, reach)
     if scene is not None and it.any_pair_force:
         _check_box(it, scene)
     return it

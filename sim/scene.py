@@ -60,7 +60,7 @@ naming the key, the value and what was expected.
     hindered_mobility = false       # near-wall mobility (overdamped only)
 
 Pair-interaction sections (``contact``, ``bonding``, ``friction``,
-``nearfield``, ``walls``) are passed raw to
+``nearfield``, ``walls``, ``vdw``: :data:`sim.interactions.SECTIONS`) are passed raw to
 ``sim.interactions.parse_interactions(raw, scene)`` and stored in
 :attr:`Scene.interactions` (``None`` when the file has none of them).
 
@@ -82,10 +82,11 @@ import numpy as np
 
 from ptrack.constants import BOLTZMANN, STANDARD_GRAVITY, VACUUM_PERMITTIVITY
 from ptrack.errors import UserError, require_file
+from sim.interactions import SECTIONS, parse_interactions
 from sim.state import State, build_state, constant_force, debye_length_of, particle_charge  # noqa: F401 (re-export)
 from sim.validate import boolean, choice, integer, number, section, vec3
 
-INTERACTION_SECTIONS = ("contact", "bonding", "friction", "nearfield", "walls")
+INTERACTION_SECTIONS = SECTIONS  # the pair-interaction sections, defined once in sim.interactions
 BOUNDARY_KINDS = ("open", "periodic", "wall")
 INTEGRATORS = ("auto", "ou_exact", "overdamped", "trapezoidal")
 INITIAL_VELOCITIES = ("zero", "terminal", "henry", "thermal")
@@ -341,7 +342,6 @@ def scene_from_dict(raw: dict, source: str | None = None) -> Scene:
     raw_int = {k: raw[k] for k in INTERACTION_SECTIONS if k in raw}
     if raw_int:
         scene.raw_interactions = raw_int
-        from sim.interactions import parse_interactions  # one direction: scene -> interactions -> validate
         scene.interactions = parse_interactions(raw_int, scene)
     return scene
 

@@ -51,7 +51,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from sim.forces.nearfield import fast_pow, nearfield_magnitude
+from sim.forces.nearfield import LAW_WIDTH, fast_pow, pair_law_force
 
 CONTACT_NONE = 0
 CONTACT_HOOKE = 1
@@ -97,7 +97,7 @@ def _law(model, cp, delta, nx, ny, nz, d, ri, rj, wall, meff,
     damp_t = 0.0
     mu_s = 0.0
     mu_d = 0.0
-    if model == 1:
+    if model == CONTACT_HOOKE:
         kn = cp[0]
         # one division and one square root per contact (the hot path)
         sq = math.sqrt(kn * meff)
@@ -174,7 +174,7 @@ def _law(model, cp, delta, nx, ny, nz, d, ri, rj, wall, meff,
         tfy = -kt_eff * sy - damp_t * vty
         tfz = -kt_eff * sz - damp_t * vtz
         ft2 = tfx * tfx + tfy * tfy + tfz * tfz
-        if model == 1:
+        if model == CONTACT_HOOKE:
             flim = mu_s * abs(fn)
             fslip = flim
         else:
@@ -187,7 +187,7 @@ def _law(model, cp, delta, nx, ny, nz, d, ri, rj, wall, meff,
                 tfx *= sc
                 tfy *= sc
                 tfz *= sc
-            if model == 1:
+            if model == CONTACT_HOOKE:
                 # LAMMPS: spring consistent with the capped force
                 sx = -(tfx + damp_t * vtx) / kt_eff
                 sy = -(tfy + damp_t * vty) / kt_eff
@@ -207,8 +207,13 @@ def _law(model, cp, delta, nx, ny, nz, d, ri, rj, wall, meff,
 
 @njit(cache=True)
 def _pair_rows(i0, i1, pos, vel, omega, radius, mass, charge, start, nbj, shift, hist,
-               force, torque, model, cp, nf_model, nfp, rotation, dt, diag):
-    """Pair forces of the list rows ``i0 <= i < i1`` (partners j anywhere)."""
+               force, torque, model, cp, laws, rotation, dt, diag):
+    """Pair forces of the list rows ``i0 <= i < i1`` (partners j anywhere).
+
+    ``laws``: the non-contact law table of :mod:`sim.forces.nearfield` (L, LAW_WIDTH), summed
+    for every listed pair; L = 0 for contact only.
+    """
+    far_laws = laws.shape[0] > 0
     ncontact = 0
     for i in range(i0, i1):
         xi = pos[i, 0]
@@ -236,8 +241,8 @@ def _pair_rows(i0, i1, pos, vel, omega, radius, mass, charge, start, nbj, shift,
             fx = 0.0
             fy = 0.0
             fz = 0.0
-            touching = model != 0 and rsq < rs * rs
-            if not touching and nf_model == 0:
+            touching = model != CONTACT_NONE and rsq < rs * rs
+            if not touching and not far_laws:
                 if hist[k, 0] != 0.0 or hist[k, 1] != 0.0 or hist[k, 2] != 0.0:
                     hist[k, 0] = 0.0
                     hist[k, 1] = 0.0
@@ -286,8 +291,8 @@ def _pair_rows(i0, i1, pos, vel, omega, radius, mass, charge, start, nbj, shift,
                 hist[k, 0] = 0.0
                 hist[k, 1] = 0.0
                 hist[k, 2] = 0.0
-            if nf_model != 0:
-                fm = nearfield_magnitude(nf_model, nfp, r, ri, rj, charge[i], charge[j])
+            if far_laws:
+                fm = pair_law_force(laws, r, ri, rj, charge[i], charge[j])
                 fx += fm * nx
                 fy += fm * ny
                 fz += fm * nz
@@ -309,19 +314,20 @@ def _pair_rows(i0, i1, pos, vel, omega, radius, mass, charge, start, nbj, shift,
 
 @njit(cache=True)
 def pair_forces(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist,
-                force, torque, model, cp, nf_model, nfp, rotation, dt, diag):
+                force, torque, model, cp, laws, rotation, dt, diag):
     """Accumulate all particle-particle forces over a half neighbour list.
 
-    ``force`` and ``torque`` (N, 3) are added to (not cleared).  ``diag`` (5,)
+    ``force`` and ``torque`` (N, 3) are added to (not cleared); ``model`` is the contact law
+    code with parameters ``cp``; ``laws`` the non-contact law table.  ``diag`` (5,)
     receives max overlap ratio, its particle, max k/m, max eta/m, contacts.
     """
     _pair_rows(0, pos.shape[0], pos, vel, omega, radius, mass, charge, start, nbj, shift, hist,
-               force, torque, model, cp, nf_model, nfp, rotation, dt, diag)
+               force, torque, model, cp, laws, rotation, dt, diag)
 
 
 @njit(cache=True, parallel=True)
 def pair_forces_parallel(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist,
-                         force, torque, model, cp, nf_model, nfp, rotation, dt, diag, fbuf, tbuf, dbuf):
+                         force, torque, model, cp, laws, rotation, dt, diag, fbuf, tbuf, dbuf):
     """Threaded :func:`pair_forces`: the list rows are split into ``T = fbuf.shape[0]``
     blocks of equal pair count, each block accumulates into its own buffer
     (no write conflicts; contact history entries belong to one row), and the
@@ -344,7 +350,7 @@ def pair_forces_parallel(pos, vel, omega, radius, mass, charge, start, nbj, shif
             dbuf[t, k] = 0.0
         if i1 > i0:
             _pair_rows(i0, i1, pos, vel, omega, radius, mass, charge, start, nbj, shift, hist,
-                       fb, tb, model, cp, nf_model, nfp, rotation, dt, dbuf[t])
+                       fb, tb, model, cp, laws, rotation, dt, dbuf[t])
     for i in prange(n):
         for t in range(nt):
             force[i, 0] += fbuf[t, i, 0]
@@ -452,5 +458,5 @@ def contact_force_pair(model, cp, xi, xj, ri, rj, mi, mj, vi=(0, 0, 0), vj=(0, 0
     t = np.zeros((2, 3))
     diag = np.zeros(D_SIZE)
     pair_forces(pos, vel, om, rad, mass, np.zeros(2), start, nbj, shift, h, f, t, int(model),
-                np.asarray(cp, dtype=np.float64), 0, np.zeros(5), True, float(dt), diag)
+                np.asarray(cp, dtype=np.float64), np.zeros((0, LAW_WIDTH)), True, float(dt), diag)
     return f[0], f[1], t[0], t[1], h[0]

@@ -39,7 +39,8 @@ from numba import njit
 
 from ptrack.constants import BOLTZMANN, VACUUM_PERMITTIVITY
 from sim.dem import rebuild_neighbors
-from sim.forces.contact import D_SIZE, pair_forces
+from sim.forces.contact import CONTACT_HOOKE, D_SIZE, pair_forces
+from sim.forces.nearfield import NF_YUKAWA, law_row, law_table
 from sim.neighbors import _build, needs_rebuild, wrap_positions
 
 DEFAULTS = dict(radius=100e-9, temperature=293.0, viscosity=1e-3, eps_r=80.0, psi=0.05, n_particles=300,
@@ -48,7 +49,8 @@ DEFAULTS = dict(radius=100e-9, temperature=293.0, viscosity=1e-3, eps_r=80.0, ps
 
 
 @njit(cache=True, nogil=True)
-def _bd_deposit(pos, radius, a, gamma, kT, f_field, t_end, dt0, nfp, cp, length, skin, seed, max_steps, stick):
+def _bd_deposit(pos, radius, a, gamma, kT, f_field, t_end, dt0, laws, cutoff, cp, length, skin, seed, max_steps,
+                stick):
     n = pos.shape[0]
     D = kT / gamma
     np.random.seed(seed)
@@ -63,7 +65,6 @@ def _bd_deposit(pos, radius, a, gamma, kT, f_field, t_end, dt0, nfp, cp, length,
     force = np.zeros((n, 3))
     torque = np.zeros((n, 3))
     diag = np.zeros(D_SIZE)
-    cutoff = nfp[2]
     wrap_positions(pos, image, lo, length, periodic)
     start, nbj, shift = _build(pos, radius, cutoff, skin, lo, length, periodic)
     hist = np.zeros((nbj.shape[0], 3))
@@ -76,7 +77,7 @@ def _bd_deposit(pos, radius, a, gamma, kT, f_field, t_end, dt0, nfp, cp, length,
                                                         start, nbj, hist, ref)
         force[:, :] = 0.0
         pair_forces(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist, force, torque,
-                    1, cp, 2, nfp, False, dt0, diag)
+                    CONTACT_HOOKE, cp, laws, False, dt0, diag)
         fmax = 0.0
         for i in range(n):
             if stuck[i]:
@@ -125,7 +126,7 @@ def run_case(case: dict) -> dict:
     u_contact = A * a * a / (2 * a)
     cut = 2 * a + lam * max(1.0, math.log(max(u_contact / (0.01 * kT), 1.0)))
     cut = min(cut, 2 * a + 8 * lam)
-    nfp = np.array([A, kappa, cut, 0.0, 0.0])
+    laws = law_table(law_row(NF_YUKAWA, [A, kappa, cut]))
     cp = hooke_params(case["contact_stiffness_kT"] * kT / a**2, 1.0, mu=0.0)
     n = int(case["n_particles"])
     vol = n * 4 / 3 * math.pi * a**3 / case["volume_fraction"]
@@ -143,8 +144,8 @@ def run_case(case: dict) -> dict:
     t_end = (height / v) * (1.0 + case["settle"]) + 20 * a * a / D / max(pe, 1.0)
     dt0 = case["dt_reduced"] * a * a / D
     pos = np.ascontiguousarray(pos)
-    stuck, t, steps = _bd_deposit(pos, np.ascontiguousarray(rad), a, gamma, kT, f_field, t_end, dt0, nfp, cp,
-                                  np.array([side, side, 10 * height]), 0.3 * a, int(case["seed"]), 20_000_000,
+    stuck, t, steps = _bd_deposit(pos, np.ascontiguousarray(rad), a, gamma, kT, f_field, t_end, dt0, laws, cut,
+                                  cp, np.array([side, side, 10 * height]), 0.3 * a, int(case["seed"]), 20_000_000,
                                   case.get("substrate", "stick") == "stick")
     stuck = stuck if case.get("substrate", "stick") == "stick" else pos[:, 2] < rad * 1.05
     # deposit: everything below the top surface that has arrived

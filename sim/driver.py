@@ -1,0 +1,238 @@
+"""Pieces of the run loop shared by :func:`sim.run.run_scene` and :func:`sim.dem.run_dem`.
+
+* :func:`prepare_out_dir`: a new run never merges into an old one; the files
+  of a run already in the folder are moved aside into ``previous-N/``.
+* :class:`InterruptGuard`: SIGINT and SIGTERM only set a flag while a run is
+  inside compiled kernels (no exception can surface inside numba's dispatcher,
+  which gave ``SystemError: ... returned a result with an exception set``);
+  the loop calls :meth:`InterruptGuard.check` between kernel calls, which
+  raises :class:`KeyboardInterrupt` (the CLI exits 130). Kernels are called in
+  pieces of bounded wall time (:class:`WallClockChunker`), so a signal stops a
+  run within about a second.
+* :class:`SegmentedTable`: the streamed trajectories table written as
+  segments that are committed together with a checkpoint. A segment is a
+  complete Parquet file (closed, renamed into place) before the checkpoint
+  that lists it is written, so after a kill (even SIGKILL, even twice) a
+  resume keeps exactly the frames the checkpoint has, and the final table
+  equals the uninterrupted run's. :meth:`SegmentedTable.finish` assembles the
+  segments into ``trajectories.parquet``.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import signal
+import threading
+import time
+from pathlib import Path
+
+log = logging.getLogger("sim.driver")
+
+RUN_FILES = ("trajectories.parquet", "trajectories.parquet.part", "scene.json", "checkpoint.npz",
+             "last_good_state.npz", "dem_summary.json", ".segments")
+SEGMENT_DIR = ".segments"
+
+
+def holds_run(out_dir) -> bool:
+    """True when ``out_dir`` contains files of a simulation run."""
+    out_dir = Path(out_dir)
+    return out_dir.is_dir() and any((out_dir / f).exists() for f in RUN_FILES)
+
+
+def prepare_out_dir(out_dir) -> bool:
+    """Create ``out_dir`` for a new run, moving the files of an earlier run aside.
+
+    Returns True when the folder was created here (so a refused run can
+    remove it again with :func:`discard_if_empty`).
+    """
+    out_dir = Path(out_dir)
+    created = not out_dir.exists()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if holds_run(out_dir):
+        k = 1
+        while (out_dir / f"previous-{k}").exists():
+            k += 1
+        dest = out_dir / f"previous-{k}"
+        dest.mkdir()
+        for f in RUN_FILES:
+            if (out_dir / f).exists():
+                (out_dir / f).rename(dest / f)
+        log.warning("%s held a run; its files were moved to %s", out_dir, dest)
+    return created
+
+
+def discard_if_empty(out_dir, created: bool) -> None:
+    """Remove ``out_dir`` if this run created it and left nothing in it."""
+    out_dir = Path(out_dir)
+    if created and out_dir.is_dir() and not any(out_dir.iterdir()):
+        out_dir.rmdir()
+
+
+class InterruptGuard:
+    """Context manager: SIGINT/SIGTERM set a flag; :meth:`check` raises KeyboardInterrupt.
+
+    Only installed in the main thread (signal handlers cannot be set
+    elsewhere; dask workers run cases without it).
+    """
+
+    def __init__(self):
+        self.signum = None
+        self._old = {}
+
+    def _handler(self, signum, frame):
+        self.signum = signum
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            for s in (signal.SIGINT, signal.SIGTERM):
+                self._old[s] = signal.signal(s, self._handler)
+        return self
+
+    def __exit__(self, *exc):
+        for s, h in self._old.items():
+            signal.signal(s, h)
+        self._old = {}
+        return False
+
+    @property
+    def stopped(self) -> bool:
+        return self.signum is not None
+
+    def check(self):
+        """Raise KeyboardInterrupt if a signal arrived."""
+        if self.signum is not None:
+            raise KeyboardInterrupt(f"signal {signal.Signals(self.signum).name}")
+
+
+class WallClockChunker:
+    """Sizes of kernel calls so that each takes about ``seconds`` of wall time.
+
+    Starts at ``first`` units (steps, or particles) and rescales from the
+    measured time of each call (between 1/4 and 4 times the last size).
+    """
+
+    def __init__(self, first: int, seconds: float = 0.25, limit: int | None = None):
+        self.size = max(1, int(first))
+        self.seconds = seconds
+        self.limit = limit
+        self._t = None
+
+    def start(self):
+        self._t = time.perf_counter()
+
+    def done(self, units: int):
+        el = time.perf_counter() - self._t
+        if units > 0:
+            per = el / units
+            want = self.seconds / per if per > 0 else 4 * self.size
+            self.size = int(max(1, min(4 * self.size, max(self.size // 4, want))))
+            if self.limit:
+                self.size = min(self.size, self.limit)
+
+
+class SegmentedTable:
+    """Trajectory frames written as Parquet segments committed together with checkpoints.
+
+    Parameters
+    ----------
+    out_dir : Path
+        The run folder; segments live in ``out_dir/.segments``.
+    meta : dict
+        Table metadata (as for :class:`ptrack.table.TrajectoryWriter`); the
+        key ``run`` (the scene fingerprint) ties each segment to its run.
+    committed : list of str, optional
+        Segment names committed by the checkpoint a run resumes from; any
+        other file in the segment folder is deleted (frames the checkpoint
+        does not have).
+    """
+
+    def __init__(self, out_dir, meta: dict, committed=None):
+        self.out_dir = Path(out_dir)
+        self.dir = self.out_dir / SEGMENT_DIR
+        self.meta = dict(meta)
+        self.committed = list(committed or [])
+        self._writer = None
+        self._name = None
+        self.dir.mkdir(parents=True, exist_ok=True)
+        keep = set(self.committed)
+        for f in self.dir.iterdir():
+            if f.name not in keep:
+                f.unlink()
+
+    def check_committed(self, run_key: str, through_frame: int) -> None:
+        """Refuse (UserError) unless the committed segments exist, belong to ``run_key`` and end at
+        ``through_frame``."""
+        import pyarrow.parquet as pq
+
+        from ptrack.errors import UserError
+        from ptrack.table import META_KEY
+
+        last = -1
+        for name in self.committed:
+            path = self.dir / name
+            if not path.is_file():
+                raise UserError(f"the checkpoint lists table segment {path}, which is missing",
+                                "rerun without --resume (the table and the checkpoint do not belong together)")
+            md = pq.read_schema(str(path)).metadata or {}
+            meta = json.loads(md.get(META_KEY.encode(), b"{}"))
+            if meta.get("run") != run_key:
+                raise UserError(f"table segment {path} belongs to another run (scene or seed differ)",
+                                "resume with the scene and seed of that run, or rerun without --resume")
+            last = max(last, int(pq.read_table(str(path), columns=["frame"])["frame"].to_numpy().max()))
+        if last != through_frame:
+            raise UserError(f"the committed table ends at frame {last}, the checkpoint at frame {through_frame}",
+                            "rerun without --resume (the table and the checkpoint do not belong together)")
+
+    def open(self, first_frame: int):
+        """Start a segment whose first frame is ``first_frame``."""
+        from ptrack.table import TrajectoryWriter
+
+        self._name = f"seg-{first_frame:07d}.parquet"
+        self._writer = TrajectoryWriter(self.dir / self._name, self.meta)
+
+    def append(self, df):
+        if self._writer is None:
+            raise RuntimeError("SegmentedTable.append before open")
+        self._writer.append(df)
+
+    def commit(self) -> list:
+        """Close the open segment (a complete file from now on); returns the committed names,
+        to be stored in the checkpoint written next."""
+        if self._writer is not None:
+            self._writer.close()
+            if (self.dir / self._name).exists():
+                self.committed.append(self._name)
+            self._writer = None
+        return list(self.committed)
+
+    def finish(self, path, meta: dict, failed: str | None = None) -> Path:
+        """Write ``path`` from every segment (committed and open), in frame order.
+
+        ``failed``: the table is marked incomplete with this reason, the open
+        (uncommitted) segment is deleted and the committed ones kept for a
+        resume; otherwise the segment folder is removed.
+        """
+        from ptrack.table import TrajectoryWriter
+
+        import pyarrow.parquet as pq
+
+        names = list(self.committed)
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+            if (self.dir / self._name).exists():
+                names.append(self._name)
+        out = TrajectoryWriter(path, meta)
+        for name in names:
+            pf = pq.ParquetFile(str(self.dir / name))
+            for g in range(pf.num_row_groups):
+                out.append(pf.read_row_group(g).to_pandas())
+        out.close(failed=failed)
+        if failed:
+            for name in names:
+                if name not in self.committed:
+                    (self.dir / name).unlink(missing_ok=True)
+        else:
+            shutil.rmtree(self.dir, ignore_errors=True)
+        return Path(path)
