@@ -191,7 +191,7 @@ def _fit_one(img, r, c, half, sigma0, gain, offset, rvar, poisson, max_iter, out
                 improved = True
                 break
             lam *= 10.0
-        if not improved or (abs(step[0]) < 1e-5 and abs(step[1]) < 1e-5):
+        if not improved or (abs(step[0]) < 1e-4 and abs(step[1]) < 1e-4):   # 1e-4 px: far below any CRB
             converged = True
             break
     # covariance: inverse Fisher information (Poisson), scaled by the residual variance (least squares)
@@ -401,7 +401,7 @@ def _fit_group(img, r0, r1, c0, c1, x0, y0, amp, sigma0, gain, offset, rvar, poi
             lam *= 10.0
         small = True
         for k in range(K):
-            if abs(step[3 * k]) >= 1e-5 or abs(step[3 * k + 1]) >= 1e-5:
+            if abs(step[3 * k]) >= 1e-4 or abs(step[3 * k + 1]) >= 1e-4:
                 small = False
         if not improved or small:
             converged = True

@@ -14,13 +14,18 @@ import pandas as pd
 from ..errors import UserError
 from .fit import fit_spots
 from .peaks import _default_separation, detect_raw, find_peaks
+from .detect import FALSE_ALARM_RATE, detect, noise_maps
 from .preprocess import median3, noise_sigma
+from .radial import radial_centres
 
 __all__ = ["locate", "estimate_sigma", "sigma_to_diameter", "diameter_to_sigma", "repair_hot_pixels",
-           "LOCATE_COLUMNS"]
+           "LOCATE_COLUMNS", "MULTISCALE_COLUMNS"]
 
 LOCATE_COLUMNS = ("x_px", "y_px", "mass", "size", "ecc", "signal", "photons", "bg_photons",
                   "sigma_x_px", "sigma_y_px")
+#: Extra columns of the multi-scale path: detection SNR (local noise units), localiser used
+#: ("gauss" or "radial"), image polarity (+1 bright, -1 dark particles).
+MULTISCALE_COLUMNS = ("snr", "method", "polarity")
 
 
 def diameter_to_sigma(diameter: float) -> float:
@@ -81,24 +86,48 @@ def _hot_in_rois(raw, bg, ds, rows, cols, half, thr):
 
 
 
-def locate(frame, img=None, sigma: float = 1.5, snr: float = 7.0, separation: float | None = None,
-           gain: float = 1.0, offset: float = 0.0, read_noise: float = 0.0, brightfield: bool = False,
-           median: bool = True, min_photons: float = 0.0, split: bool = True) -> pd.DataFrame:
+def locate(frame, img=None, sigma: float | None = None, snr: float | None = None, separation: float | None = None,
+           gain: float = 1.0, offset: float = 0.0, read_noise: float = 0.0, brightfield: bool | None = None,
+           median: bool = True, min_photons: float = 0.0, split: bool = True, scales=None,
+           rate: float = FALSE_ALARM_RATE, centre: str = "auto", frame_no: int = 0) -> pd.DataFrame:
     """Detect and localise the particles of one frame.
+
+    With the defaults (``sigma=None``) nothing needs tuning: detection is
+    multi-scale with a false-alarm threshold and the polarity decided from
+    the data (:func:`ptrack.image.detect.detect`); each particle is
+    localised at its own size, by the Gaussian fit (blobs) or by radial
+    symmetry (rings, :mod:`ptrack.image.radial`), see ``centre``. Giving
+    ``sigma`` selects the single-size matched filter of issue 5 (one spot
+    width for the frame, ``snr`` default 7).
 
     Parameters
     ----------
     frame : 2D array
         Raw camera frame (counts).
     img : 2D float32 array, optional
-        The preprocessed frame (:func:`ptrack.preprocess.prepare`) to detect
-        on. If not given, fluorescence frames take the fast path
-        (:func:`detect_raw`: spatial background at block resolution) and
-        brightfield frames are prepared with the spatial background.
-    sigma : float
-        Spot width (px); see :func:`estimate_sigma`.
-    snr, separation, median
+        Single-size path only: the preprocessed frame
+        (:func:`ptrack.preprocess.prepare`) to detect on. If not given,
+        fluorescence frames take the fast path (:func:`detect_raw`: spatial
+        background at block resolution) and brightfield frames are prepared
+        with the spatial background.
+    sigma : float, optional
+        Spot width (px) for the single-size path; see :func:`estimate_sigma`.
+    snr : float, optional
+        Detection threshold in local noise units (overrides the false-alarm
+        rate; single-size path: default 7).
+    separation, median
         Detection settings (:func:`find_peaks`).
+    scales : sequence of float, optional
+        Spot widths searched (px), default
+        :data:`ptrack.image.detect.DEFAULT_SCALES`.
+    rate : float
+        False detections per pixel on an empty frame (default 1e-6).
+    centre : {"auto", "gauss", "radial"}
+        Localiser: ``auto`` fits a Gaussian to blobs and takes the radial-
+        symmetry centre of rings (a dip in the centre, or a ring of the
+        opposite sign around it); the ``method`` column says which.
+    frame_no : int
+        Value of the ``frame`` column.
     gain, offset, read_noise
         Camera model (counts per photon, baseline counts, read noise e-).
     brightfield : bool
@@ -114,7 +143,7 @@ def locate(frame, img=None, sigma: float = 1.5, snr: float = 7.0, separation: fl
     Returns
     -------
     pandas.DataFrame
-        Columns :data:`LOCATE_COLUMNS`: ``x_px``, ``y_px`` (px), ``mass``
+        ``frame`` and the columns :data:`LOCATE_COLUMNS`: ``x_px``, ``y_px`` (px), ``mass``
         (counts above background), ``size`` (fitted Gaussian width, px),
         ``ecc``, ``signal`` (matched-filter peak, counts), ``photons``,
         ``bg_photons`` (per px), ``sigma_x_px``, ``sigma_y_px`` (px, Cramer-Rao
@@ -122,6 +151,12 @@ def locate(frame, img=None, sigma: float = 1.5, snr: float = 7.0, separation: fl
     """
     from .preprocess import prepare
 
+    if sigma is None:
+        return _locate_multiscale(frame, snr=snr, gain=gain, offset=offset, read_noise=read_noise,
+                                  brightfield=brightfield, median=median, min_photons=min_photons, scales=scales,
+                                  rate=rate, centre=centre, frame_no=frame_no)
+    snr = 7.0 if snr is None else float(snr)
+    brightfield = bool(brightfield)
     if img is None and not brightfield:
         # fast path: detection on the raw frame, background only at block resolution
         rows, cols, vals, aux = detect_raw(frame, sigma, snr=snr, separation=separation, median=median)
@@ -150,7 +185,7 @@ def locate(frame, img=None, sigma: float = 1.5, snr: float = 7.0, separation: fl
     vals = np.asarray(vals)[fit["index"]]
     keep = fit["ok"] & (fit["photons"] > min_photons) & np.isfinite(fit["x"])
     df = pd.DataFrame({
-        "x_px": fit["x"][keep], "y_px": fit["y"][keep], "mass": mass[keep], "size": fit["s"][keep],
+        "frame": np.full(int(keep.sum()), int(frame_no), np.int64), "x_px": fit["x"][keep], "y_px": fit["y"][keep], "mass": mass[keep], "size": fit["s"][keep],
         "ecc": fit["ecc"][keep], "signal": vals[keep], "photons": fit["photons"][keep],
         "bg_photons": fit["bg"][keep], "sigma_x_px": np.sqrt(np.abs(fit["var_x"][keep])),
         "sigma_y_px": np.sqrt(np.abs(fit["var_y"][keep])),
@@ -216,3 +251,106 @@ def estimate_sigma(frames, brightfield: bool = False, gain: float = 1.0, offset:
             break
         s = s_new
     return s
+
+
+@nb.njit(cache=True)
+def _ring_like(sub, rows, cols, scale, noise, out):
+    # per spot, on the polarity-corrected, background-subtracted image: ring-like when the centre is
+    # fainter than the annulus around it (a hole: a ring) or when an annulus of the opposite sign
+    # surrounds it beyond 4 noise standard errors (a bright centre in a dark ring, or the reverse)
+    h, w = sub.shape
+    for k in range(rows.shape[0]):
+        s = scale[k]
+        rc = max(1.0, 0.6 * s)
+        half = int(math.ceil(3.0 * s)) + 1
+        core = 0.0
+        nc = 0
+        mid = 0.0
+        nm = 0
+        outer = 0.0
+        no = 0
+        for r in range(max(0, rows[k] - half), min(h, rows[k] + half + 1)):
+            for c in range(max(0, cols[k] - half), min(w, cols[k] + half + 1)):
+                d = math.sqrt((r - rows[k]) ** 2 + (c - cols[k]) ** 2)
+                v = sub[r, c]
+                if d <= rc:
+                    core += v
+                    nc += 1
+                elif s <= d <= 2.0 * s:
+                    mid += v
+                    nm += 1
+                elif 2.0 * s < d <= 3.0 * s:
+                    outer += v
+                    no += 1
+        core /= max(nc, 1)
+        mid /= max(nm, 1)
+        neg = min(mid, outer / max(no, 1))
+        nn = nm if mid < outer / max(no, 1) else no
+        out[k] = core < mid or neg < -4.0 * noise / math.sqrt(max(nn, 1))
+
+
+def _locate_multiscale(frame, snr=None, gain=1.0, offset=0.0, read_noise=0.0, brightfield=None, median=True,
+                       min_photons=0.0, scales=None, rate=FALSE_ALARM_RATE, centre="auto", frame_no=0):
+    """The knob-free path of :func:`locate` (see there)."""
+    if centre not in ("auto", "gauss", "radial"):
+        raise UserError(f"centre = {centre!r} is not known", "use 'auto', 'gauss' or 'radial'")
+    raw = np.ascontiguousarray(frame)
+    if raw.dtype not in (np.uint8, np.uint16, np.float32, np.float64):
+        raw = raw.astype(np.float32)
+    pol = None if brightfield is None else (-1 if brightfield else 1)
+    det = detect(raw, scales=scales, polarity=pol, snr=snr, rate=rate, median=median, offset=offset)
+    rows, cols, scale, polarity = det["rows"], det["cols"], det["scale"], det["polarity"]
+    n = len(rows)
+    # background-subtracted image, particles positive (dark particles: the background minus the frame)
+    f32 = raw.astype(np.float32)
+    bgmap, nzmap = noise_maps(f32, tile=32, step=2)
+    sub = (f32 - bgmap) if polarity > 0 else (bgmap - f32)
+    noise = float(np.median(nzmap))
+    ring = np.zeros(n, np.bool_)
+    if n:
+        _ring_like(np.ascontiguousarray(sub, np.float32), rows, cols, scale.astype(np.float64), noise, ring)
+    if centre == "gauss":
+        ring[:] = False
+    elif centre == "radial":
+        ring[:] = True
+    x = np.full(n, np.nan)
+    y = np.full(n, np.nan)
+    vx = np.full(n, np.nan)
+    vy = np.full(n, np.nan)
+    photons = np.full(n, np.nan)
+    bgp = np.full(n, np.nan)
+    size = scale.astype(float).copy()
+    ecc = np.zeros(n)
+    ok = np.zeros(n, bool)
+    poisson = polarity > 0
+    # Gaussian fits at each particle's own scale (one call per scale of the ladder); only spots whose
+    # windows overlap are fitted jointly; no split test (the scale ladder gives each image its size,
+    # so a wide spot is a large image, not an unresolved pair)
+    blob = ~ring
+    for s in np.unique(scale[blob]):
+        q = np.nonzero(blob & (scale == s))[0]
+        src = raw if poisson else sub
+        half = max(3, int(math.ceil(3 * s)))
+        fit = fit_spots(src, rows[q], cols[q], float(s), gain=gain if poisson else 1.0,
+                        offset=offset if poisson else 0.0, read_noise=read_noise, poisson=poisson,
+                        amps=det["snr"][q], split=False, group_radius=2.0 * half)
+        x[q], y[q], vx[q], vy[q] = fit["x"], fit["y"], fit["var_x"], fit["var_y"]
+        photons[q], bgp[q], size[q], ecc[q], ok[q] = fit["photons"], fit["bg"], fit["s"], fit["ecc"], fit["ok"]
+    q = np.nonzero(ring)[0]
+    if len(q):
+        half = np.maximum(4, np.ceil(3.0 * scale[q])).astype(np.int64)
+        rc = radial_centres(sub, rows[q], cols[q], half)
+        x[q], y[q], vx[q], vy[q], ok[q] = rc["x"], rc["y"], rc["var_x"], rc["var_y"], rc["ok"]
+        # photons of a ring: the background-subtracted sum over its window (counts / gain)
+        photons[q] = [float(np.clip(sub[max(0, r - h):r + h + 1, max(0, c - h):c + h + 1], 0, None).sum()) / gain
+                      for r, c, h in zip(rows[q], cols[q], half)] if len(q) < 5000 else np.nan
+        bgp[q] = (bgmap[rows[q], cols[q]] - (offset if poisson else 0.0)) / (gain if poisson else 1.0)
+    mass = photons * (gain if poisson else 1.0)
+    keep = ok & np.isfinite(x) & np.isfinite(y) & (np.nan_to_num(photons, nan=np.inf) > min_photons)
+    k = np.nonzero(keep)[0]
+    return pd.DataFrame({
+        "frame": np.full(len(k), int(frame_no), np.int64), "x_px": x[k], "y_px": y[k], "mass": mass[k],
+        "size": size[k], "ecc": ecc[k], "signal": det["signal"][k], "photons": photons[k], "bg_photons": bgp[k],
+        "sigma_x_px": np.sqrt(np.abs(vx[k])), "sigma_y_px": np.sqrt(np.abs(vy[k])), "snr": det["snr"][k],
+        "method": np.where(ring[k], "radial", "gauss"), "polarity": np.full(len(k), polarity, np.int8),
+    })
