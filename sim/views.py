@@ -18,71 +18,80 @@ import numpy as np
 from ptrack.errors import atomic_output
 
 
-def _mpl():
-    import matplotlib
+def _figure(figsize):
+    """A figure without pyplot: no backend switch, no global figure list (notebook-safe)."""
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+    return Figure(figsize=figsize)
 
 
 def _draw(ax, pos, radius, cn, vmax, box=None, title=None):
-    x, y, z = pos[:, 0], pos[:, 1], pos[:, 2]
+    """3D scatter in µm (metres give tick labels such as 2.5e-06 that overlap into a smear)."""
+    from matplotlib.ticker import MaxNLocator
+
+    um = 1e6
+    x, y, z = pos[:, 0] * um, pos[:, 1] * um, pos[:, 2] * um
+    r = radius * um
     # marker size ~ radius in axis units (approximate; matplotlib sizes are in points^2)
-    span = max(np.ptp(x) if len(x) else 1.0, np.ptp(y) if len(y) else 1.0, 1e-12)
-    s = (radius / span * 210.0) ** 2
+    span = max(np.ptp(x) if len(x) else 1.0, np.ptp(y) if len(y) else 1.0, 1e-6)
+    s = (r / span * 210.0) ** 2
     sc = ax.scatter(x, y, z, c=cn, cmap="viridis", vmin=0, vmax=vmax, s=s, depthshade=True, edgecolors="none")
     if box is not None:
-        ax.set_xlim(0, box[0])
-        ax.set_ylim(0, box[1])
-    ztop = max(float((z + radius).max()) if len(z) else 1.0, 1e-12)
+        ax.set_xlim(0, box[0] * um)
+        ax.set_ylim(0, box[1] * um)
+    ztop = max(float((z + r).max()) if len(z) else 1.0, 1e-6)
     ax.set_zlim(0, ztop)
-    xs = box[0] if box is not None else max(np.ptp(x), 1e-12)
-    ys = box[1] if box is not None else max(np.ptp(y), 1e-12)
-    try:
-        ax.set_box_aspect((xs, ys, min(ztop, 2 * max(xs, ys))))
-    except Exception:  # older matplotlib
-        pass
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.set_zlabel("z (m)")
+    xs = box[0] * um if box is not None else max(np.ptp(x), 1e-6)
+    ys = box[1] * um if box is not None else max(np.ptp(y), 1e-6)
+    # a flat deposit gets a thin but readable z axis: at least a quarter of the width
+    ax.set_box_aspect((xs, ys, min(max(ztop, 0.25 * max(xs, ys)), 2 * max(xs, ys))))
+    ax.zaxis.set_major_locator(MaxNLocator(3))
+    ax.xaxis.set_major_locator(MaxNLocator(4))
+    ax.yaxis.set_major_locator(MaxNLocator(4))
+    ax.tick_params(labelsize=7, pad=0)
+    ax.set_xlabel("x (µm)", fontsize=8, labelpad=2)
+    ax.set_ylabel("y (µm)", fontsize=8, labelpad=2)
+    ax.set_zlabel("z (µm)", fontsize=8, labelpad=2)
     if title:
         ax.set_title(title, fontsize=9)
     return sc
 
 
+def _colorbar(fig, sc, rect):
+    """Colour bar in its own axes at ``rect`` (figure fraction): never over an axis label."""
+    cax = fig.add_axes(rect)
+    fig.colorbar(sc, cax=cax, label="coordination number")
+
+
 def snapshot_png(path, pos, radius, cn, box=None, title=None, vmax=None):
     """One frame as a 3D scatter coloured by coordination number (PNG)."""
-    plt = _mpl()
-    fig = plt.figure(figsize=(6, 5))
-    ax = fig.add_subplot(111, projection="3d")
+    fig = _figure((6.8, 5))
+    ax = fig.add_axes([0.0, 0.02, 0.80, 0.92], projection="3d")
     vmax = vmax if vmax is not None else max(12, int(np.max(cn)) if len(cn) else 12)
     sc = _draw(ax, np.asarray(pos), np.asarray(radius), np.asarray(cn), vmax, box, title)
-    fig.colorbar(sc, ax=ax, shrink=0.7, label="coordination number")
+    _colorbar(fig, sc, [0.88, 0.2, 0.025, 0.6])
     with atomic_output(path, None) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
     return Path(path)
 
 
 def snapshots_png(path, frames, box=None, vmax=None):
     """Several frames side by side; ``frames`` = list of (t, pos, radius, cn)."""
-    plt = _mpl()
     k = len(frames)
     ncol = 2 if k == 4 else k
     nrow = (k + ncol - 1) // ncol
-    fig = plt.figure(figsize=(5.2 * ncol, 4.6 * nrow))
+    fig = _figure((5.2 * ncol + 0.8, 4.6 * nrow))
     vmax = vmax if vmax is not None else max([12] + [int(np.max(f[3])) for f in frames if len(f[3])])
     sc = None
+    width = 0.92 / ncol                       # the right 8 % holds the colour bar
     for a, (t, pos, radius, cn) in enumerate(frames):
-        ax = fig.add_subplot(nrow, ncol, a + 1, projection="3d")
+        r, c = divmod(a, ncol)
+        ax = fig.add_axes([c * width, 1 - (r + 1) / nrow + 0.02, width * 0.98, 0.92 / nrow], projection="3d")
         sc = _draw(ax, np.asarray(pos), np.asarray(radius), np.asarray(cn), vmax, box, f"t = {t:.3g} s")
     if sc is not None:
-        fig.colorbar(sc, ax=fig.axes, shrink=0.6, label="coordination number")
+        _colorbar(fig, sc, [0.94, 0.2, 0.012, 0.6])
     with atomic_output(path, None) as tmp:
         fig.savefig(tmp, dpi=100, format="png")
-    plt.close(fig)
     return Path(path)
 
 
