@@ -120,3 +120,50 @@ def test_unreachable_scheduler_refused(scene, tmp_path, capsys):
 def test_quick_shortens_runs(scene, tmp_path):
     cases = build_cases(__import__("tomllib").loads(SCENE), [], 1, tmp_path, quick=True)
     assert cases[0].raw["time"]["final"] == pytest.approx(0.006)
+
+
+DEM_SCENE = """
+seed = 1
+[particles]
+count = 20
+radius = 0.05
+density = 1540.0
+[fluid]
+density = 0.0
+viscosity = 1.0e-12
+temperature = 0.0
+[gravity]
+enabled = true
+g = [0.0, 0.0, -1000.0]
+buoyancy = false
+[domain]
+size = [1.0, 1.0, 0.5]
+placement_z = [0.0, 0.3]
+[boundaries]
+x = "periodic"
+y = "periodic"
+bottom_wall = true
+[time]
+dt = 1.0e-6
+final = 0.1
+output_interval = 0.01
+[contact]
+model = "hooke"
+kn = 1.0e9
+restitution = 0.3
+checkpoint_every = 5
+[friction]
+mu = 0.4
+"""
+
+
+def test_dem_sweep_deposit(tmp_path):
+    # 20 spheres (R = 0.05 m) dropped into a 1 m^2 periodic box settle as a monolayer: all deposited,
+    # centres at z = R (less the static overlap m g / kn ~ 1e-6 m)
+    p = tmp_path / "dem.toml"
+    p.write_text(DEM_SCENE)
+    t = run_sweep(p, ["contact.restitution=0.3"], tmp_path / "sw", use_dask=False, progress=False)
+    r = t.iloc[0]
+    assert r["status"] == "ok" and r["deposited_fraction"] == 1.0
+    assert abs(r["z_mean"] - 0.05) < 1e-3 * 0.05
+    assert math.isnan(r["D_xy"])  # T = 0 and contacts: no diffusion coefficient
