@@ -150,6 +150,47 @@ def _implied_motion_blur(table: pd.DataFrame, D: float, dt: float) -> dict | Non
             "note": "R = 0: instantaneous exposure; 1/6: shutter open the whole frame"}
 
 
+def flag_stuck(df: pd.DataFrame, sigma: float, window: int = 5, floor: float = 0.15e-6) -> pd.DataFrame:
+    """Mark each track's rows from the moment it stops moving sideways for good (deposited, stuck).
+
+    A particle that sticks on the substrate stops in x and y as well as z; a free one diffuses sideways
+    (0.4 um in 5 frames at 30 fps for 0.8 um particles). A row is ``deposited`` when every later row of
+    its track stays within ``max(8 sigma, floor)`` of it in x and in y (the suffix range of the track),
+    and at least ``window`` rows follow. Unlike a height threshold this needs no correct z near the wall
+    (brightfield GDPT may read a particle sitting on the substrate 2 um too high).
+
+    Parameters
+    ----------
+    df : DataFrame
+        Trajectories table.
+    sigma : float
+        Localisation error in x, y, m.
+    window : int
+        Fewest rows of a stationary end of a track.
+    floor : float
+        Smallest allowed spread of a stuck particle's positions, m.
+
+    Returns
+    -------
+    DataFrame
+        A copy with a boolean column ``deposited``.
+    """
+    thr = max(8 * float(sigma), floor)
+    d = df.sort_values(["particle", "frame"], kind="stable").reset_index(drop=True)
+    rev = d.iloc[::-1]
+    g = rev.groupby("particle", sort=False)
+    ok = np.ones(len(d), bool)
+    for c in ("x", "y"):
+        rng_ = (g[c].cummax() - g[c].cummin()).iloc[::-1].to_numpy()
+        ok &= rng_ <= thr
+    after = rev.groupby("particle", sort=False).cumcount().iloc[::-1].to_numpy()   # rows after this one
+    # a row is stuck if it and all later rows are within thr; the suffix must be long enough
+    stuck = ok & (after + 1 >= window)
+    # once stuck, the rest of the track is stuck (suffix property), so the flag is monotone in frame
+    d["deposited"] = stuck
+    return d
+
+
 # --------------------------------------------------------------------------- physical parameters
 def infer_parameters(table: pd.DataFrame, temperature: float, viscosity: float, radius: float | None = None,
                      height: float | None = None, wall_z: float = 0.0, wall_hydrodynamics: bool = True,
@@ -234,16 +275,22 @@ def infer_parameters(table: pd.DataFrame, temperature: float, viscosity: float, 
         return R
 
     R_est = radius if radius is not None else solve_R(D, used)
-    if three_d and field is not None:
-        # deposited particles sit still at the wall: their rows would pull D and the drift towards zero
-        used = trim_deposited(table, z_contact=wall_z + R_est)
-        if used["particle"].nunique() >= 3:
+    if three_d and (field is not None or density is not None):
+        # deposited particles sit still at the wall: their rows would pull D and the drift towards zero.
+        # Dropped where the height says so (trim_deposited) or where the particle has stopped sideways
+        # (flag_stuck: robust to a wrong z near the wall)
+        flagged = flag_stuck(table, res.sigma_loc["xy"])
+        moving = flagged[~flagged["deposited"]].drop(columns="deposited")
+        moving.attrs.update(table.attrs)
+        trimmed = trim_deposited(moving, z_contact=wall_z + R_est)
+        if trimmed["particle"].nunique() >= 3:
+            used = trimmed
             res = estimate(used)
             D, De = res.D["xy"], res.D_err["xy"]
             R_est = radius if radius is not None else solve_R(D, used)
-            out["notes"].append(f"rows from contact with the wall on dropped ({len(table) - len(used)} rows)")
-        else:
-            used = table
+            out["notes"].append(f"rows from contact with the wall on dropped ({len(table) - len(used)} rows; "
+                                f"{int(flagged['deposited'].sum())} of them stationary sideways)")
+            out["n_deposited_tracks"] = int(flagged.groupby("particle")["deposited"].any().sum())
     ratio = ratio_of(used, R_est)
     out.update({"D": dict(res.D), "D_err": dict(res.D_err), "D_method": "CVE over tracks, field-of-view corrected",
                 "n_tracks": int(table["particle"].nunique()), "wall_ratio": ratio,
