@@ -129,6 +129,7 @@ class Case:
     seed: int
     folder: Path
     fingerprint: str      # of the resolved scene + seed: what a done marker must match
+    source: str | None = None
 
 
 def replicate_seed(seed: int, r: int) -> int:
@@ -183,8 +184,10 @@ def build_cases(raw: dict, sets: list[tuple[str, list]], replicates: int, out: P
         for r in range(replicates):
             seed = replicate_seed(scene.seed, r)
             resolved = dataclasses.replace(scene, seed=seed).to_dict()
+            resolved.pop("source", None)  # the content counts, not where the scene file lies
             cases.append(Case(index=len(cases), point=p, replicate=r, values=values, raw=variant, seed=seed,
-                              folder=out / f"case_{p:04d}_r{r:02d}", fingerprint=_fingerprint(resolved)))
+                              folder=out / f"case_{p:04d}_r{r:02d}", fingerprint=_fingerprint(resolved),
+                              source=source))
     return cases
 
 
@@ -256,7 +259,7 @@ def run_case(case: Case) -> dict:
     if case.folder.exists():  # an unfinished or different earlier run: start clean
         shutil.rmtree(case.folder)
     case.folder.mkdir(parents=True)
-    scene = scene_from_dict(case.raw)
+    scene = scene_from_dict(case.raw, source=case.source)
     t0 = time.perf_counter()
     base = {"case": case.index, "point": case.point, "replicate": case.replicate, "seed": case.seed,
             **{k: _json_safe(v) for k, v in case.values.items()}, "folder": case.folder.name}
