@@ -11,8 +11,10 @@
    stack; the measured drift velocity towards the electrode (before contact)
    against the Henry velocity the movie was rendered with.
 
-Results (tables, PNG plots, ``summary.json``) go to ``out/mainjob/`` (or the
-folder given as the first argument).
+Results (tables, PNG plots, ``summary.json``) go to ``out/mainjob/`` in the
+working folder (or the folder given as the first argument). The data are
+``data/synthetic/`` of a source checkout, or the copy installed with the
+package (``ptrack/datasets/``).
 """
 from __future__ import annotations
 
@@ -29,7 +31,15 @@ from .motion import estimate_diffusion, match_truth, stokes_einstein
 from .table import read_table
 
 ROOT = Path(__file__).resolve().parent.parent
-DATA = ROOT / "data" / "synthetic"
+
+
+def _data_dir() -> Path:
+    """The shipped datasets: ``data/synthetic`` of a source checkout, else the installed ``ptrack/datasets``."""
+    src = ROOT / "data" / "synthetic"
+    return src if src.is_dir() else Path(__file__).resolve().parent / "datasets"
+
+
+DATA = _data_dir()
 UM2 = 1e12  # m^2/s -> µm²/s
 
 
@@ -197,7 +207,7 @@ def job_brightfield(out: Path) -> dict:
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    out = Path(argv[0]) if argv else ROOT / "out" / "mainjob"
+    out = Path(argv[0]) if argv else Path.cwd() / "out" / "mainjob"      # the working folder, never the install
     t0 = time.perf_counter()
     try:
         summary = {"diffusion2d": job_2d(out), "diffusion3d": job_3d(out), "epd_brightfield": job_brightfield(out)}

@@ -25,33 +25,42 @@ def _figure(figsize):
     return Figure(figsize=figsize)
 
 
+def _unit(span: float):
+    """(factor, name) putting a length span of this size (m) between 1 and 1000 units: m, mm, µm or nm."""
+    for f, name in ((1.0, "m"), (1e3, "mm"), (1e6, "µm"), (1e9, "nm")):
+        if span * f >= 1.0:
+            return f, name
+    return 1e9, "nm"
+
+
 def _draw(ax, pos, radius, cn, vmax, box=None, title=None):
-    """3D scatter in µm (metres give tick labels such as 2.5e-06 that overlap into a smear)."""
+    """3D scatter in m, mm, µm or nm by the scene's size (metres give tick labels such as 2.5e-06 that smear)."""
     from matplotlib.ticker import MaxNLocator
 
-    um = 1e6
+    size = max(box[:2]) if box is not None else float(np.ptp(pos[:, :2])) if len(pos) else 1.0
+    um, uname = _unit(size)
     x, y, z = pos[:, 0] * um, pos[:, 1] * um, pos[:, 2] * um
     r = radius * um
     # marker size ~ radius in axis units (approximate; matplotlib sizes are in points^2)
-    span = max(np.ptp(x) if len(x) else 1.0, np.ptp(y) if len(y) else 1.0, 1e-6)
+    span = max(np.ptp(x) if len(x) else 1.0, np.ptp(y) if len(y) else 1.0, 1e-9)
     s = (r / span * 210.0) ** 2
     sc = ax.scatter(x, y, z, c=cn, cmap="viridis", vmin=0, vmax=vmax, s=s, depthshade=True, edgecolors="none")
     if box is not None:
         ax.set_xlim(0, box[0] * um)
         ax.set_ylim(0, box[1] * um)
-    ztop = max(float((z + r).max()) if len(z) else 1.0, 1e-6)
+    ztop = max(float((z + r).max()) if len(z) else 1.0, 1e-9)
     ax.set_zlim(0, ztop)
-    xs = box[0] * um if box is not None else max(np.ptp(x), 1e-6)
-    ys = box[1] * um if box is not None else max(np.ptp(y), 1e-6)
+    xs = box[0] * um if box is not None else max(np.ptp(x), 1e-9)
+    ys = box[1] * um if box is not None else max(np.ptp(y), 1e-9)
     # a flat deposit gets a thin but readable z axis: at least a quarter of the width
     ax.set_box_aspect((xs, ys, min(max(ztop, 0.25 * max(xs, ys)), 2 * max(xs, ys))))
     ax.zaxis.set_major_locator(MaxNLocator(3))
     ax.xaxis.set_major_locator(MaxNLocator(4))
     ax.yaxis.set_major_locator(MaxNLocator(4))
     ax.tick_params(labelsize=7, pad=0)
-    ax.set_xlabel("x (µm)", fontsize=8, labelpad=2)
-    ax.set_ylabel("y (µm)", fontsize=8, labelpad=2)
-    ax.set_zlabel("z (µm)", fontsize=8, labelpad=2)
+    ax.set_xlabel(f"x ({uname})", fontsize=8, labelpad=2)
+    ax.set_ylabel(f"y ({uname})", fontsize=8, labelpad=2)
+    ax.set_zlabel(f"z ({uname})", fontsize=8, labelpad=2)
     if title:
         ax.set_title(title, fontsize=9)
     return sc
@@ -86,7 +95,7 @@ def snapshots_png(path, frames, box=None, vmax=None):
     width = 0.92 / ncol                       # the right 8 % holds the colour bar
     for a, (t, pos, radius, cn) in enumerate(frames):
         r, c = divmod(a, ncol)
-        ax = fig.add_axes([c * width, 1 - (r + 1) / nrow + 0.02, width * 0.98, 0.92 / nrow], projection="3d")
+        ax = fig.add_axes([c * width, 1 - (r + 1) / nrow + 0.01, width * 0.98, 0.88 / nrow], projection="3d")
         sc = _draw(ax, np.asarray(pos), np.asarray(radius), np.asarray(cn), vmax, box, f"t = {t:.3g} s")
     if sc is not None:
         _colorbar(fig, sc, [0.94, 0.2, 0.012, 0.6])
