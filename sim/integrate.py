@@ -53,6 +53,7 @@ from numba import njit
 
 from ptrack.errors import UserError
 from sim.forces.drag import drag_factor, max_reynolds
+from sim.scene import PERIODIC, WALL
 
 log = logging.getLogger("sim.integrate")
 
@@ -68,7 +69,7 @@ from ptrack.wall import parallel_ratio_nb, perpendicular_ratio_derivative_nb, pe
 def _apply_boundaries(pos, vel, i, radius, box, modes, flip_velocity):
     for k in range(3):
         L = box[k]
-        if modes[0, k] == 1:  # periodic (both faces)
+        if modes[0, k] == PERIODIC:  # both faces
             x = pos[i, k]
             if x < 0.0 or x >= L:
                 x = x - L * math.floor(x / L)
@@ -79,12 +80,12 @@ def _apply_boundaries(pos, vel, i, radius, box, modes, flip_velocity):
         r = radius
         for _ in range(4):  # repeated reflection if a step crosses both walls (tiny boxes)
             moved = False
-            if modes[0, k] == 2 and pos[i, k] < r:
+            if modes[0, k] == WALL and pos[i, k] < r:
                 pos[i, k] = 2.0 * r - pos[i, k]
                 if flip_velocity:
                     vel[i, k] = abs(vel[i, k])
                 moved = True
-            if modes[1, k] == 2 and pos[i, k] > L - r:
+            if modes[1, k] == WALL and pos[i, k] > L - r:
                 pos[i, k] = 2.0 * (L - r) - pos[i, k]
                 if flip_velocity:
                     vel[i, k] = -abs(vel[i, k])
@@ -120,10 +121,14 @@ def ou_coefficients(a):
 # --------------------------------------------------------------------------- kernels
 @njit(cache=True, nogil=True)
 def ou_exact_kernel(pos, vel, radius, mass, gamma, fconst, vf, kT, dt, steps, nframes, box, modes,
-                    out_pos, out_vel, noise):
-    """Exact OU update of all particles; frames stored in out_pos/out_vel (nframes, N, 3)."""
-    n = pos.shape[0]
-    for i in range(n):
+                    out_pos, out_vel, noise, i0, i1):
+    """Exact OU update of particles ``i0 <= i < i1``; frames stored in out_pos/out_vel (nframes, N, 3).
+
+    Particles are advanced one after the other over all frames, so calling the
+    kernel on consecutive particle blocks draws the same random numbers as one
+    call (the driver does this to return to Python in bounded wall time).
+    """
+    for i in range(i0, i1):
         tau = mass[i] / gamma[i]
         a = dt / tau
         e, em, gvv, gxx, gxv, gcond = ou_coefficients(a)
@@ -211,15 +216,15 @@ def _wall_lookup(x, u0, du, par, perp, dperp):
 
 @njit(cache=True, nogil=True)
 def overdamped_kernel(pos, vel, radius, gamma, fconst, vf, kT, dt, steps, nframes, box, modes,
-                      out_pos, out_vel, noise, hindered, u0, du, tpar, tperp, tdperp):
+                      out_pos, out_vel, noise, hindered, u0, du, tpar, tperp, tdperp, i0, i1):
     """Euler-Maruyama Brownian dynamics; ``vel`` receives the deterministic drift velocity.
 
     With ``hindered`` the mobility parallel / perpendicular to the z = 0 wall
     is scaled by the ratios of :mod:`ptrack.wall` at h / R (h = centre height,
     tabulated by :func:`wall_tables`) and the drift kB T dM_perp/dz dt is added.
+    Particles ``i0 <= i < i1`` (see :func:`ou_exact_kernel`).
     """
-    n = pos.shape[0]
-    for i in range(n):
+    for i in range(i0, i1):
         m0 = 1.0 / gamma[i]
         a = radius[i]
         for f in range(nframes):
@@ -262,7 +267,7 @@ def _drag_gamma(g0, stokes, radius, rho_f, mu, ux, uy, uz):
 
 @njit(cache=True, nogil=True)
 def trapezoidal_kernel(pos, vel, radius, mass, gamma, charge, fconst, vf, B, rho_f, mu, kT, dt,
-                       steps, nframes, box, modes, out_pos, out_vel, noise, phi, tol, max_iter, stokes):
+                       steps, nframes, box, modes, out_pos, out_vel, noise, phi, tol, max_iter, stokes, i0, i1):
     """Generalised trapezoidal rule (eq. 3.28-3.29). Returns the number of non-converged steps.
 
     ``fconst`` already holds q E and gravity; the drag (Stokes if ``stokes``,
@@ -270,15 +275,15 @@ def trapezoidal_kernel(pos, vel, radius, mass, gamma, charge, fconst, vf, B, rho
     (variance 2 gamma kT / dt with the Stokes gamma) is drawn once per step and
     held over it. (Fluctuation-dissipation is exact only for the linear,
     Stokes drag; at Re > 1 the thermal force is negligible against the drive.)
+    Particles ``i0 <= i < i1`` (see :func:`ou_exact_kernel`).
     """
-    n = pos.shape[0]
     failures = 0
     v0 = np.empty(3)
     v1 = np.empty(3)
     vn = np.empty(3)
     f0 = np.empty(3)
     fb = np.empty(3)
-    for i in range(n):
+    for i in range(i0, i1):
         m = mass[i]
         g0 = gamma[i]
         q = charge[i]
@@ -486,7 +491,7 @@ def choose_integrator(scene, state, fconst) -> IntegratorChoice:
     qm = np.abs(state.charge) / state.mass
     lim = max_stable_dt(kind, phi, tau_eff, float(qm.max(initial=0.0)) * bmag)
     out = scene.time.output_interval
-    walls = bool(np.any(scene.boundaries.modes == 2))
+    walls = bool(np.any(scene.boundaries.modes == WALL))
     dt = scene.time.dt
     if dt is None:
         if kind == "ou_exact":

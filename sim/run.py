@@ -34,7 +34,9 @@ from sim.forces.brownian import seed_rng
 from sim.forces.drag import max_reynolds
 from sim.integrate import (IntegratorChoice, _reynolds_at_balance, choose_integrator, ou_exact_kernel,
                            overdamped_kernel, trapezoidal_kernel, wall_tables)
-from sim.scene import Scene, State, build_state, constant_force
+from sim.driver import InterruptGuard, WallClockChunker, discard_if_empty, prepare_out_dir
+from sim.scene import Scene
+from sim.state import State, build_state, constant_force
 
 log = logging.getLogger("sim.run")
 
@@ -88,35 +90,66 @@ class Stepper:
                               self.scene.fluid.viscosity)
         return re_now <= 1.0 and self.re_balance <= 1.0
 
-    def advance(self, nframes: int, out_pos=None, out_vel=None):
-        """Advance ``nframes`` output intervals; return the frames (nframes, N, 3) of positions and velocities."""
+    def advance(self, nframes: int, out_pos=None, out_vel=None, poll=None, chunker=None):
+        """Advance ``nframes`` output intervals; return the frames (nframes, N, 3) of positions and velocities.
+
+        With ``chunker`` (:class:`sim.driver.WallClockChunker`, in particle-steps) the particles are
+        advanced in consecutive blocks of bounded wall time, with ``poll()`` between blocks; the
+        kernels advance particles one after the other, so the random numbers, and the result, are
+        those of one call.
+        """
         st = self.state
         c = self.choice
         n = st.n
         if out_pos is None:
             out_pos = np.empty((nframes, n, 3))
             out_vel = np.empty((nframes, n, 3))
-        if c.kind == "ou_exact":
-            ou_exact_kernel(st.pos, st.vel, st.radius, st.mass, st.gamma, self.fconst, self.vf, self.kT, c.dt,
-                            c.steps_per_output, nframes, self.box, self.modes, out_pos, out_vel, self.noise)
-        elif c.kind == "overdamped":
-            hindered = bool(self.scene.integrator.hindered_mobility)
-            tabs = wall_tables() if hindered else (0.0, 1.0, np.zeros(2), np.zeros(2), np.zeros(2))
-            overdamped_kernel(st.pos, st.vel, st.radius, st.gamma, self.fconst, self.vf, self.kT, c.dt,
-                              c.steps_per_output, nframes, self.box, self.modes, out_pos, out_vel, self.noise,
-                              hindered, *tabs)
-        else:
+        if c.kind == "trapezoidal":
             spec = self.scene.integrator
             # the drag-law branching is skipped while Re stays <= 1; checked once per output interval
             for f in range(nframes):
                 stokes = self.stokes_only()
-                self.failures += trapezoidal_kernel(
-                    st.pos, st.vel, st.radius, st.mass, st.gamma, st.charge, self.fconst, self.vf, self.B,
-                    self.scene.fluid.density, self.scene.fluid.viscosity, self.kT, c.dt, c.steps_per_output, 1,
-                    self.box, self.modes, out_pos[f:f + 1], out_vel[f:f + 1], self.noise, c.phi,
-                    spec.tolerance, spec.max_iterations, stokes)
+
+                def call(i0, i1, f=f, stokes=stokes):
+                    self.failures += trapezoidal_kernel(
+                        st.pos, st.vel, st.radius, st.mass, st.gamma, st.charge, self.fconst, self.vf, self.B,
+                        self.scene.fluid.density, self.scene.fluid.viscosity, self.kT, c.dt, c.steps_per_output, 1,
+                        self.box, self.modes, out_pos[f:f + 1], out_vel[f:f + 1], self.noise, c.phi,
+                        spec.tolerance, spec.max_iterations, stokes, i0, i1)
+                self._blocks(call, c.steps_per_output, poll, chunker)
+        else:
+            if c.kind == "ou_exact":
+                def call(i0, i1):
+                    ou_exact_kernel(st.pos, st.vel, st.radius, st.mass, st.gamma, self.fconst, self.vf, self.kT,
+                                    c.dt, c.steps_per_output, nframes, self.box, self.modes, out_pos, out_vel,
+                                    self.noise, i0, i1)
+            else:
+                hindered = bool(self.scene.integrator.hindered_mobility)
+                tabs = wall_tables() if hindered else (0.0, 1.0, np.zeros(2), np.zeros(2), np.zeros(2))
+
+                def call(i0, i1):
+                    overdamped_kernel(st.pos, st.vel, st.radius, st.gamma, self.fconst, self.vf, self.kT, c.dt,
+                                      c.steps_per_output, nframes, self.box, self.modes, out_pos, out_vel,
+                                      self.noise, hindered, *tabs, i0, i1)
+            self._blocks(call, nframes * c.steps_per_output, poll, chunker)
         st.t += nframes * self.scene.time.output_interval
         return out_pos, out_vel
+
+    def _blocks(self, call, steps, poll, chunker):
+        """``call(i0, i1)`` over consecutive particle blocks of about ``chunker.size`` particle-steps."""
+        n = self.state.n
+        if chunker is None:
+            call(0, n)
+            return
+        i0 = 0
+        while i0 < n:
+            i1 = min(n, i0 + max(1, chunker.size // max(steps, 1)))
+            chunker.start()
+            call(i0, i1)
+            chunker.done((i1 - i0) * steps)
+            i0 = i1
+            if poll is not None and i0 < n:
+                poll()
 
 
 def _frame_table(frames: np.ndarray, t: np.ndarray, pos: np.ndarray, vel: np.ndarray, radius: np.ndarray) -> pd.DataFrame:
@@ -129,6 +162,37 @@ def _frame_table(frames: np.ndarray, t: np.ndarray, pos: np.ndarray, vel: np.nda
         "vx": vel[:, :, 0].ravel(), "vy": vel[:, :, 1].ravel(), "vz": vel[:, :, 2].ravel(),
         "radius": np.tile(radius, nf),
     })
+
+
+# a run estimated above this many particle-steps is refused (about a day at 1e7 particle-steps/s)
+MAX_PARTICLE_STEPS = 1.0e12
+PARTICLE_STEPS_PER_S = 1.0e7  # order of magnitude of the free-particle kernels on one core, for the message
+
+
+def check_cost(n: int, n_frames: int, choice: IntegratorChoice) -> float:
+    """Refuse (UserError) a run whose estimated cost is absurd; returns the particle-steps.
+
+    The cost is N x frames x steps per frame, known before any step; the
+    message says why the steps are so many (dt and what chose it) and, when
+    the Reynolds number is beyond the tabulated drag law, that the physics is
+    outside the model anyway.
+    """
+    from sim.electrokinetics import _CD_RE4
+
+    cost = float(n) * n_frames * choice.steps_per_output
+    if cost <= MAX_PARTICLE_STEPS:
+        return cost
+    hours = cost / PARTICLE_STEPS_PER_S / 3600
+    why = (f"the run needs {cost:.2g} particle-steps ({choice.steps_per_output:.3g} steps of dt = {choice.dt:.3g} s "
+           f"per output frame, about {hours:.3g} h)")
+    if choice.re_estimate > _CD_RE4:
+        why += (f"; the Reynolds number reaches {choice.re_estimate:.3g}, far outside the drag law "
+                f"(tabulated to Re = {_CD_RE4:.3g}), so the result would not mean anything anyway")
+    elif choice.re_estimate > 1.0:
+        why += (f"; the Reynolds number reaches {choice.re_estimate:.3g}, far outside Stokes flow (Re <= 1) where "
+                "the colloid physics of a scene (Brownian motion, Henry's charge) holds: the drive is unphysical "
+                "for these particles")
+    raise UserError(why, "lower the field or the charge, or shorten time.final / output_interval")
 
 
 def _write_state(path: Path, state: State, t: float) -> None:
@@ -164,8 +228,15 @@ def run_scene(scene: Scene, out_dir, seed=None, progress: bool = True, resume: b
     Raises
     ------
     UserError
-        Unstable time step (before the run), or NaN/Inf during the run (the
+        Unstable time step or an absurd estimated cost (:func:`check_cost`),
+        both before anything is written; or NaN/Inf during the run (the
         frames so far and ``last_good_state.npz`` are kept).
+    KeyboardInterrupt
+        SIGINT or SIGTERM (checked between kernel calls of ~0.25 s): the
+        frames completed so far are kept, marked incomplete.
+
+    A folder that holds an earlier run gets that run's files moved into
+    ``previous-N/`` first (:func:`sim.driver.prepare_out_dir`).
     """
     if seed is not None:
         scene = dataclasses.replace(scene, seed=int(seed))
@@ -179,17 +250,23 @@ def run_scene(scene: Scene, out_dir, seed=None, progress: bool = True, resume: b
                         "run it again without --resume (free-particle runs are fast and deterministic for a seed)")
 
     t0 = time.perf_counter()
-    out_dir.mkdir(parents=True, exist_ok=True)
+    # everything that can refuse the run comes before anything is written
     state = build_state(scene)
     fconst = constant_force(scene, state)
     choice = choose_integrator(scene, state, fconst)
     n_out = int(round(scene.time.final / scene.time.output_interval))
+    check_cost(state.n, n_out, choice)
+    created = prepare_out_dir(out_dir)
     resolved = {"scene": scene.to_dict(), "integrator": choice.to_dict(), "n_output_frames": n_out + 1,
                 "gravity_note": "gravity with buoyancy is on unless [gravity] enabled = false",
                 "units": "SI"}
     scene_json = out_dir / "scene.json"
-    with atomic_output(scene_json, "w") as fh:
-        json.dump(resolved, fh, indent=2, default=float)
+    try:
+        with atomic_output(scene_json, "w") as fh:
+            json.dump(resolved, fh, indent=2, default=float)
+    except BaseException:
+        discard_if_empty(out_dir, created)
+        raise
     traj_path = out_dir / "trajectories.parquet"
     meta = {"source": "sim", "frame_interval": scene.time.output_interval, "scene": scene.source,
             "integrator": choice.kind, "dt": choice.dt, "integrator_reason": choice.reason, "seed": scene.seed}
@@ -203,38 +280,47 @@ def run_scene(scene: Scene, out_dir, seed=None, progress: bool = True, resume: b
     writer = TrajectoryWriter(traj_path, meta)
     from tqdm import tqdm
     bar = tqdm(total=n_out, desc="simulate", unit="frame", disable=not progress, file=sys.stderr)
+    guard = InterruptGuard()
+    chunker = WallClockChunker(first=1_000_000)
     try:
-        writer.append(_frame_table(np.array([0]), np.array([0.0]), state.pos[None], state.vel[None], state.radius))
-        done = 0
-        while done < n_out:
-            g = min(group, n_out - done)
-            good = state.copy()
-            stepper.advance(g, buf_pos[:g], buf_vel[:g])
-            ok = np.isfinite(buf_pos[:g]).all(axis=(1, 2)) & np.isfinite(buf_vel[:g]).all(axis=(1, 2))
-            if not ok.all():
-                nbad = int(np.argmin(ok))
-                if nbad > 0:
-                    frames = np.arange(done + 1, done + 1 + nbad)
-                    writer.append(_frame_table(frames, frames * dt_out, buf_pos[:nbad], buf_vel[:nbad], state.radius))
-                    good.pos = buf_pos[nbad - 1].copy()
-                    good.vel = buf_vel[nbad - 1].copy()
-                t_good = (done + nbad) * dt_out
-                _write_state(out_dir / "last_good_state.npz", good, t_good)
-                t_bad = (done + nbad + 1) * dt_out
-                reason = f"non-finite positions/velocities by t = {t_bad:.6g} s"
-                writer.close(failed=reason)
-                raise UserError(
-                    f"simulation stopped: {reason} (integrator {choice.kind}, dt = {choice.dt:.3g} s); "
-                    f"frames up to t = {t_good:.6g} s are in {traj_path}, last good state in {out_dir / 'last_good_state.npz'}",
-                    "reduce time.dt or check the forces and parameters of the scene")
-            frames = np.arange(done + 1, done + 1 + g)
-            writer.append(_frame_table(frames, frames * dt_out, buf_pos[:g], buf_vel[:g], state.radius))
-            done += g
-            bar.update(g)
+        with guard:
+            writer.append(_frame_table(np.array([0]), np.array([0.0]), state.pos[None], state.vel[None],
+                                       state.radius))
+            done = 0
+            while done < n_out:
+                g = min(group, n_out - done)
+                good = state.copy()
+                stepper.advance(g, buf_pos[:g], buf_vel[:g], poll=guard.check, chunker=chunker)
+                ok = np.isfinite(buf_pos[:g]).all(axis=(1, 2)) & np.isfinite(buf_vel[:g]).all(axis=(1, 2))
+                if not ok.all():
+                    nbad = int(np.argmin(ok))
+                    if nbad > 0:
+                        frames = np.arange(done + 1, done + 1 + nbad)
+                        writer.append(_frame_table(frames, frames * dt_out, buf_pos[:nbad], buf_vel[:nbad],
+                                                   state.radius))
+                        good.pos = buf_pos[nbad - 1].copy()
+                        good.vel = buf_vel[nbad - 1].copy()
+                    t_good = (done + nbad) * dt_out
+                    _write_state(out_dir / "last_good_state.npz", good, t_good)
+                    t_bad = (done + nbad + 1) * dt_out
+                    reason = f"non-finite positions/velocities by t = {t_bad:.6g} s"
+                    writer.close(failed=reason)
+                    raise UserError(
+                        f"simulation stopped: {reason} (integrator {choice.kind}, dt = {choice.dt:.3g} s); "
+                        f"frames up to t = {t_good:.6g} s are in {traj_path}, last good state in "
+                        f"{out_dir / 'last_good_state.npz'}",
+                        "reduce time.dt or check the forces and parameters of the scene")
+                frames = np.arange(done + 1, done + 1 + g)
+                writer.append(_frame_table(frames, frames * dt_out, buf_pos[:g], buf_vel[:g], state.radius))
+                done += g
+                bar.update(g)
+                guard.check()
     except UserError:
         raise
     except BaseException as exc:
-        writer.close(failed=f"{type(exc).__name__}: {exc}")
+        # an interrupt inside a group: the frames of earlier groups are complete and kept
+        why = f"interrupted ({exc})" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}"
+        writer.close(failed=why)
         raise
     finally:
         bar.close()

@@ -171,8 +171,8 @@ def test_nan_stops_run_and_keeps_last_good_state(tmp_path, monkeypatch):
     orig = run_mod.Stepper.advance
     calls = {"n": 0}
 
-    def bad_advance(self, nframes, out_pos=None, out_vel=None):
-        res = orig(self, nframes, out_pos, out_vel)
+    def bad_advance(self, nframes, out_pos=None, out_vel=None, **kw):
+        res = orig(self, nframes, out_pos, out_vel, **kw)
         out_pos[3:] = np.nan  # the 4th frame of the first chunk goes bad
         return res
 

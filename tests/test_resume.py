@@ -179,3 +179,101 @@ def test_new_run_moves_an_old_run_aside(scene_file, tmp_path):
     assert json.loads((tmp_path / "scene.json").read_text())["scene"]["seed"] == 2
     assert not np.array_equal(second[["x", "y"]].to_numpy(), first[["x", "y"]].to_numpy())
     assert not (tmp_path / ".segments").exists()
+
+
+FREE = """
+seed = 4
+[particles]
+count = 400
+radius = 1.0e-7
+density = 2200.0
+charge = -1.0e-17
+[fluid]
+temperature = 293.0
+[fields]
+E = [0.0, 0.0, -1.0e3]
+[domain]
+size = [1.0e-5, 1.0e-5, 2.0e-5]
+[time]
+dt = 1.0e-9
+final = 1.0
+output_interval = 1.0e-2
+[integrator]
+kind = "ou_exact"
+"""
+
+
+def test_ctrl_c_stops_a_free_particle_run_inside_its_kernels(tmp_path):
+    """4e11 particle-steps (hours); SIGINT must end it at the next kernel return with exit 130."""
+    scene = tmp_path / "free.toml"
+    scene.write_text(FREE)
+    out = tmp_path / "out"
+    p = subprocess.Popen(_cli(str(scene), "--out", str(out)), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                         text=True)
+    t0 = time.time()
+    while not (out / "trajectories.parquet.part").exists() and p.poll() is None and time.time() - t0 < 300:
+        time.sleep(0.05)
+    time.sleep(1.0)  # inside the first kernel call
+    p.send_signal(signal.SIGINT)
+    rc = p.wait(timeout=120)  # uninterrupted, the first group of frames alone takes minutes
+    err = p.stderr.read()
+    assert rc == 130 and "Traceback" not in err and "SystemError" not in err, err
+    df = _table(out / "trajectories.parquet")  # frame 0 at least, readable, marked incomplete
+    assert df.attrs["ptrack"]["incomplete"].startswith("interrupted") and df["frame"].min() == 0
+
+
+def test_particle_blocks_give_the_same_numbers_as_one_call():
+    import tomllib
+
+    from sim.driver import WallClockChunker
+    from sim.integrate import choose_integrator
+    from sim.run import Stepper
+    from sim.scene import scene_from_dict
+    from sim.state import build_state, constant_force
+
+    raw = tomllib.loads(FREE)
+    raw["time"].update(dt=1e-6, final=1e-3, output_interval=1e-4)
+    res = []
+    for kind in ("ou_exact", "overdamped", "trapezoidal"):
+        raw["integrator"] = {"kind": kind, "phi": 0.5 if kind == "trapezoidal" else 0.0}
+        for chunker in (None, WallClockChunker(first=30 * 100, seconds=1e9, limit=3000)):
+            sc = scene_from_dict(raw)
+            st = build_state(sc)
+            fc = constant_force(sc, st)
+            stepper = Stepper(sc, st, fc, choose_integrator(sc, st, fc))
+            res.append(stepper.advance(5, chunker=chunker, poll=lambda: None)[0])
+        np.testing.assert_array_equal(res[-1], res[-2])
+
+
+def test_absurd_cost_refused_up_front_with_the_reason(tmp_path):
+    import tomllib
+
+    from ptrack.errors import UserError
+    from sim.run import run_scene
+    from sim.scene import scene_from_dict
+
+    raw = tomllib.loads(FREE)
+    raw["fields"]["E"] = [0.0, 0.0, -1.0e12]
+    raw["time"].pop("dt")
+    raw["integrator"]["kind"] = "auto"
+    out = tmp_path / "never"
+    with pytest.raises(UserError, match="Reynolds number reaches") as exc:
+        run_scene(scene_from_dict(raw), out, progress=False)
+    assert "particle-steps" in str(exc.value)
+    assert not out.exists()
+
+
+def test_unstable_dt_refused_without_leaving_a_folder(tmp_path):
+    import tomllib
+
+    from ptrack.errors import UserError
+    from sim.run import run_scene
+    from sim.scene import scene_from_dict
+
+    raw = tomllib.loads(FREE)
+    raw["time"].update(dt=1e-6, final=1e-3, output_interval=1e-4)
+    raw["integrator"] = {"kind": "trapezoidal", "phi": 0.0}
+    out = tmp_path / "never"
+    with pytest.raises(UserError, match="unstable"):
+        run_scene(scene_from_dict(raw), out, progress=False)
+    assert not out.exists()
