@@ -141,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     except UserError as exc:
         return _fail(str(exc))
     except KeyboardInterrupt:
-        return _fail("interrupted (Ctrl-C); completed output files are kept, none is half-written", EXIT_INTERRUPTED)
+        return _fail(_INTERRUPTED, EXIT_INTERRUPTED)
     except SystemExit as exc:  # --help, --version of a subcommand
         if exc.code in (None, 0):
             return 0
@@ -158,10 +158,12 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(f"{cause}; {fix}")
     except SystemError as exc:
         if _interrupted(exc):
-            return _fail("interrupted (Ctrl-C); completed output files are kept, none is half-written",
+            return _fail(_INTERRUPTED,
                          EXIT_INTERRUPTED)
         raise
 
+
+_INTERRUPTED = "interrupted; files already written are complete (a streamed table is kept, marked incomplete)"
 
 # options that name output files or folders, for messages about a failed write
 _OUTPUT_DESTS = ("out", "report", "json", "plot", "tracks_out")

@@ -170,6 +170,7 @@ OPTIONS: dict[str, Range] = {
     "--fluid-density": positive("kg/m^3"),
     "--debye-length": positive("m"),
     "--permittivity": Range("a relative permittivity >= 1", lo=1.0),
+    "--calibrate": whole(0, "calibration rounds", hi=5),
     # studies
     "--replicates": whole(1, "replicates per case"),
     "--particles": whole(1, "particles"),

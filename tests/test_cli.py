@@ -183,3 +183,80 @@ def test_user_error_is_a_value_error():
     assert isinstance(e, ValueError) and str(e) == "x is bad; give a good x" and (e.cause, e.fix) == ("x is bad", "give a good x")
     with pytest.raises(ValueError):
         raise UserError("x")
+
+
+def _raising(exc):
+    def run(args):
+        raise exc
+    return run
+
+
+def test_environment_errors_are_one_line(capsys, monkeypatch):
+    import errno
+
+    import ptrack.commands.wall_cmd as wall_cmd
+
+    argv = ["wall", "--radius", "1e-6", "--height", "2e-6", "--json", "/x/w.json"]
+    monkeypatch.setattr(wall_cmd, "run", _raising(OSError(errno.ENOSPC, "No space left on device", "/x/w.json")))
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["error: No space left on device: /x/w.json; free some space or write to another disk"]
+    # pyarrow's errors carry the errno in the text only, and no file name: the outputs are named
+    monkeypatch.setattr(wall_cmd, "run", _raising(OSError("Error writing bytes. Detail: [errno 28] No space left")))
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "No space left on device (writing --json /x/w.json)" in err[0]
+    monkeypatch.setattr(wall_cmd, "run", _raising(OSError(errno.EROFS, "Read-only file system", "/x")))
+    assert main(argv) == 2 and "read-only" in capsys.readouterr().err
+    monkeypatch.setattr(wall_cmd, "run", _raising(OSError(errno.ECONNREFUSED, "refused")))
+    with pytest.raises(OSError):  # not an environment problem the user can fix by a path: a real traceback
+        main(argv)
+
+
+def test_ctrl_c_is_one_line_exit_130_also_from_a_compiled_kernel(capsys, monkeypatch):
+    import ptrack.commands.wall_cmd as wall_cmd
+
+    argv = ["wall", "--radius", "1e-6", "--height", "2e-6"]
+    monkeypatch.setattr(wall_cmd, "run", _raising(KeyboardInterrupt()))
+    assert main(argv) == 130
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+
+    def numba_like(args):  # numba: "CPUDispatcher(...) returned a result with an exception set"
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as exc:
+            raise SystemError("CPUDispatcher(<function k>) returned a result with an exception set") from exc
+
+    monkeypatch.setattr(wall_cmd, "run", numba_like)
+    assert main(argv) == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: interrupted")
+
+
+def test_check_writable(tmp_path):
+    import os
+
+    from ptrack.errors import check_writable, output_dir
+
+    assert check_writable(tmp_path / "a" / "b.parquet") == tmp_path / "a" / "b.parquet"
+    assert list(tmp_path.iterdir()) == []  # nothing created
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(UserError, match="is a file"):
+        check_writable(tmp_path / "f" / "b.parquet")
+    with pytest.raises(UserError, match="is a folder"):
+        check_writable(tmp_path)
+    with pytest.raises(UserError, match="cannot be written"):
+        check_writable("/proc/ptrack-nope/out.parquet")
+    with pytest.raises(UserError, match="MB are free"):
+        check_writable(tmp_path / "big.bin", need_bytes=10**18)
+    # output_dir: a refused run leaves no empty folder, a run that wrote something keeps it
+    with pytest.raises(UserError):
+        with output_dir(tmp_path / "run" / "sub"):
+            raise UserError("refused")
+    assert not (tmp_path / "run").exists()
+    with pytest.raises(RuntimeError):
+        with output_dir(tmp_path / "run2") as d:
+            (d / "partial.txt").write_text("x")
+            raise RuntimeError
+    assert (tmp_path / "run2" / "partial.txt").exists()
+    assert os.access(tmp_path, os.W_OK)
