@@ -470,7 +470,7 @@ def _outside_fraction(t, r0, r1, c0, c1) -> float:
 
 
 def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm_drop, coarse: int = 0,
-               masked: bool = False):
+               masked: bool = False, fine_margin: int | None = None):
     """Best template, z, sub-pixel x, y and Cm of the particle image near frame pixel (r, c).
 
     ``masked``: for an image cut by the frame edge, correlate only the
@@ -505,18 +505,33 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
             return _masked_ncc(win, t, r0, r1, c0, c1)
         return cv2.matchTemplate(win, t, cv2.TM_CCOEFF_NORMED)
 
+    def corr_near(k, i0, j0, mf):
+        # the shifts within mf of (i0, j0) only (the fine stage: the position is known from the coarse one)
+        t = tmpl[k]
+        h = t.shape[0] // 2
+        a0, a1 = max(i0 - mf, 0), min(i0 + mf, n - 1) + 1
+        b0, b1 = max(j0 - mf, 0), min(j0 + mf, n - 1) + 1
+        win = padded[ri - h - m + a0: ri + h - m + a1, ci - h - m + b0: ci + h - m + b1]
+        out = np.full((n, n), -1.0, np.float32)
+        out[a0:a1, b0:b1] = cv2.matchTemplate(win, t, cv2.TM_CCOEFF_NORMED)
+        return out
+
     maps = np.full((K, n, n), -1.0, np.float32)
     if coarse and K > 4 * coarse:
         # coarse to fine: every ``coarse``-th page first, then every page within a coarse step + 1 of the best
+        # (templates interpolated between recorded pages: at the +-2 shifts around the coarse stage's best only,
+        # unless the image is cut by the frame edge and needs the masked correlation)
         first = np.arange(0, K, coarse)
         for k in first:
             maps[k] = corr(k)
         np.copyto(maps, -1.0, where=np.isnan(maps))    # a constant window (padding) gives NaN
         best = int(first[np.argmax(maps[first].reshape(len(first), -1).max(1))])
         lo, hi = max(0, best - coarse - 1), min(K, best + coarse + 2)
+        i0, j0 = np.unravel_index(int(np.argmax(maps[best])), (n, n))
+        near = fine_margin is not None and not masked and m > fine_margin
         for k in range(lo, hi):
             if k % coarse:
-                maps[k] = corr(k)
+                maps[k] = corr_near(k, i0, j0, fine_margin) if near else corr(k)
         np.copyto(maps, -1.0, where=np.isnan(maps))
         done = np.union1d(first, np.arange(lo, hi))
     else:
@@ -953,6 +968,12 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
     img = np.ascontiguousarray(img, np.float32)
     H, W = img.shape
     m = int(margin)
+    # templates interpolated between the recorded pages (n_sub per step): the coarse stage runs over the
+    # recorded pages, the fine one over the interpolated ones near the best at +-2 px shifts only
+    n_sub = int(calib.info.get("n_sub", 1))
+    fm = 2 if n_sub > 1 else None
+    if n_sub > 1 and coarse:
+        coarse = max(int(coarse), n_sub)
     padded, pad, tmpl = _prepare_matching(img, calib, smooth, m)
     sm = cv2.GaussianBlur(median3(img), (0, 0), sigmaX=float(sigma))
     base = float(np.median(sm[::5, ::5]))
@@ -1009,7 +1030,7 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
                 lim = 0.5 * max(snr_fit, snr_rel * _overlap_snr(near, hits, tmpl))
                 if not _still_there(res.img, pad, tmpl, calib, r, c, k0, c_candidate, lim, res.noise):
                     continue
-            hit = _match_one(res.img, pad, r, c, tmpl, calib, m, z_points, cm_drop, coarse)
+            hit = _match_one(res.img, pad, r, c, tmpl, calib, m, z_points, cm_drop, coarse, fine_margin=fm)
             if hit["cm"] < cm_min:
                 continue
             if hits and np.hypot(xy()[:, 0] - hit["y_px"], xy()[:, 1] - hit["x_px"]).min() <= 2.0:
@@ -1096,7 +1117,8 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
                     alive.append(i)         # its neighbourhood did not change since its last re-match
                     continue
                 res.add(*models[i])
-                h2 = _match_one(res.img, pad, h["y_px"], h["x_px"], tmpl, calib, min(m, 2), z_points, cm_drop, coarse)
+                h2 = _match_one(res.img, pad, h["y_px"], h["x_px"], tmpl, calib, min(m, 2), z_points, cm_drop, coarse,
+                                fine_margin=fm)
                 if h2["cm"] >= h["cm"] - 0.02:
                     if (h2["page"] != h["page"] or abs(h2["x_px"] - h["x_px"]) > 0.1
                             or abs(h2["y_px"] - h["y_px"]) > 0.1):
@@ -1201,15 +1223,21 @@ def locate_frame_3d(raw, calib: Calibration, brightfield: bool = False, backgrou
         ``x_px``, ``y_px`` (px), ``z`` (m), ``cm``, ``mass`` and the
         diagnostic columns of :func:`locate_3d` (``chi2``, ``edge``...).
     """
-    from .gdpt.fast import match_scale, reduce_frame, reduced_calibration, refine_xy
+    from .gdpt.fast import match_scale, reduce_frame, reduced_calibration, refine_full
 
     img = prepare_gdpt(raw, calib, brightfield=brightfield, background=background)
     f = options.pop("scale", None) or match_scale(calib)
     if f <= 1:
         return locate_3d(img, calib, snr=snr, cm_min=cm_min, **options)
-    # large templates: matched at 1/f resolution (ptrack.gdpt.fast), x, y placed again at full resolution
-    df = locate_3d(reduce_frame(img, f), reduced_calibration(calib, f), snr=snr, cm_min=cm_min, **options)
+    # large templates: matched at 1/f resolution (ptrack.gdpt.fast), x, y, z refined at full resolution
+    # (the brightness cut on faint leftovers, min_mass x the frame's median, after the full-resolution brightness)
+    min_mass = options.pop("min_mass", 0.5)
+    df = locate_3d(reduce_frame(img, f), reduced_calibration(calib, f), snr=snr, cm_min=cm_min, min_mass=0.0,
+                   **options)
     df["x_px"] = (df["x_px"] + 0.5) * f - 0.5
     df["y_px"] = (df["y_px"] + 0.5) * f - 0.5
     df["mass"] = df["mass"] * (f * f)
-    return refine_xy(img, calib, df, f)
+    df = refine_full(img, calib, df, f)
+    if len(df) >= 3 and min_mass:
+        df = df[df["mass"] >= min_mass * float(df["mass"].median())].reset_index(drop=True)
+    return df

@@ -6,9 +6,8 @@ reduced by an integer factor ``f`` (area averaging, so the photon noise is
 averaged too, not aliased) until the largest template is about
 ``target`` px; the whole matcher (:func:`ptrack.calibration.locate_3d`:
 candidates, residual subtraction, splitting of merged images) runs there at
-~f^4 less cost, and x, y of each particle are then refined on the full
-resolution frame with its best template alone (one correlation over
-+-(f + 1) px).
+~f^4 less cost, and x, y, z of each particle are then refined on the full
+resolution frame near that match (:func:`refine_full`).
 """
 from __future__ import annotations
 
@@ -16,7 +15,7 @@ import math
 
 import numpy as np
 
-__all__ = ["match_scale", "reduced_calibration", "reduce_frame", "refine_xy"]
+__all__ = ["match_scale", "reduced_calibration", "reduce_frame", "refine_full"]
 
 
 def _antialias(img, f: int):
@@ -29,7 +28,9 @@ def _antialias(img, f: int):
 
 def match_scale(calib, target: int = 48) -> int:
     """Integer reduction factor so that the largest template is about ``target`` px (1: match as is)."""
-    return max(1, int(calib.size // target))
+    # at most 3: beyond, the smallest (in-focus) images shrink to a pixel or two and a few particles per frame
+    # come out at a wrong height that the full-resolution refinement (near the reduced match) cannot recover
+    return max(1, min(3, int(calib.size // target)))
 
 
 def reduced_calibration(calib, f: int):
@@ -71,37 +72,89 @@ def reduce_frame(img, f: int):
     return cv2.resize(_antialias(img, f), (Wp // f, Hp // f), interpolation=cv2.INTER_AREA)
 
 
-def refine_xy(img, calib, df, f: int, smooth: float = 1.5):
-    """x, y of each particle on the full-resolution frame: its best template correlated over +-(f + 1) px.
+def refine_full(img, calib, df, f: int, smooth: float = 1.5, small: int = 64):
+    """x, y, z and Cm of each particle again on the full-resolution frame, near the reduced-resolution match.
 
-    Kept only where the correlation peak lies inside the search window and
-    the template inside the frame (else the reduced-resolution position
-    stays).
+    Per particle: its best template correlated over +-(f + 1) px gives the
+    position; then the templates around its height (for images under
+    ``small`` px, whose shape the reduction blurred, every template under
+    ``small`` px and one recorded step beyond; 3 interpolated templates
+    either way for larger ones) are correlated at
+    +-1 px of it, and z is the vertex of the parabola through Cm(z)
+    (:func:`ptrack.calibration._quadratic_peak`). A particle whose windows
+    leave the frame keeps its reduced-resolution values. ``mass``: the
+    least-squares amplitude of the best full-resolution template times its
+    signal.
     """
     import cv2
 
-    from ..calibration import _gauss3
+    from ..calibration import _gauss3, _quadratic_peak, _subpixel_peaks
 
     if len(df) == 0:
         return df
     H, W = img.shape
     sm = cv2.GaussianBlur(np.ascontiguousarray(img, np.float32), (0, 0), smooth) if smooth else img
-    m = f + 1
-    xs, ys = df["x_px"].to_numpy().copy(), df["y_px"].to_numpy().copy()
-    for i, k in enumerate(df["page"].to_numpy()):
-        t = calib.templates[int(k)]
+    cache = calib.info.setdefault("_smoothed", {})
+    if smooth not in cache:
+        cache[smooth] = [cv2.GaussianBlur(t, (0, 0), smooth) if smooth else t for t in calib.templates]
+    tm = cache[smooth]
+    K = len(tm)
+    n_sub = int(calib.info.get("n_sub", 1))
+    out = df.copy()
+    xs, ys, zs, cms, pages, mass = (out[c].to_numpy().copy() for c in ("x_px", "y_px", "z", "cm", "page", "mass"))
+    for i in range(len(out)):
+        k = int(pages[i])
+        t = tm[k]
         T = t.shape[0]
-        cy, cx = calib.centers[int(k)]
+        cy, cx = calib.centers[k]
+        m = f + 1
         top, left = int(round(ys[i] - cy)) - m, int(round(xs[i] - cx)) - m
         if top < 0 or left < 0 or top + T + 2 * m > H or left + T + 2 * m > W:
             continue
-        tt = cv2.GaussianBlur(t, (0, 0), smooth) if smooth else t
-        R = cv2.matchTemplate(sm[top:top + T + 2 * m, left:left + T + 2 * m], tt, cv2.TM_CCOEFF_NORMED)
+        R = cv2.matchTemplate(sm[top:top + T + 2 * m, left:left + T + 2 * m], t, cv2.TM_CCOEFF_NORMED)
         a, b = np.unravel_index(int(np.argmax(R)), R.shape)
-        if not (0 < a < R.shape[0] - 1 and 0 < b < R.shape[1] - 1):
+        y0, x0 = top + a + cy, left + b + cx           # integer-placed centre
+        if T < small:
+            # a small image: its shape was blurred by the reduction, its reduced-resolution z may be pages off;
+            # small templates are cheap: all of them near focus (one recorded step beyond)
+            sizes = calib.info.setdefault("_sizes", np.array([q.shape[0] for q in tm]))
+            js = np.nonzero(sizes < small)[0]
+            js = np.arange(max(0, js.min() - n_sub), min(K, js.max() + n_sub + 1))
+        else:
+            js = np.arange(max(0, k - 3), min(K, k + 4))
+        maps = np.full((len(js), 3, 3), -1.0, np.float32)
+        inside = True
+        for q, j in enumerate(js):
+            tj = tm[j]
+            Tj = tj.shape[0]
+            tp, lf = int(round(y0 - calib.centers[j][0])) - 1, int(round(x0 - calib.centers[j][1])) - 1
+            if tp < 0 or lf < 0 or tp + Tj + 2 > H or lf + Tj + 2 > W:
+                inside = False
+                break
+            maps[q] = cv2.matchTemplate(sm[tp:tp + Tj + 2, lf:lf + Tj + 2], tj, cv2.TM_CCOEFF_NORMED)
+        if not inside:
             continue
-        ys[i] = top + a + _gauss3(R[a - 1, b], R[a, b], R[a + 1, b]) + cy
-        xs[i] = left + b + _gauss3(R[a, b - 1], R[a, b], R[a, b + 1]) + cx
-    out = df.copy()
-    out["x_px"], out["y_px"] = xs, ys
+        np.copyto(maps, -1.0, where=np.isnan(maps))
+        peak = np.full(K, -1.0)
+        peak[js] = _subpixel_peaks(maps)
+        kb = int(np.argmax(peak))
+        zs[i] = _quadratic_peak(calib.z, peak, kb, None, 0.15)
+        cms[i] = min(float(peak[kb]), 1.0)
+        mp = maps[kb - js[0]]
+        a, b = np.unravel_index(int(np.argmax(mp)), mp.shape)
+        di = _gauss3(mp[a - 1, b], mp[a, b], mp[a + 1, b]) if 0 < a < 2 else 0.0
+        dj = _gauss3(mp[a, b - 1], mp[a, b], mp[a, b + 1]) if 0 < b < 2 else 0.0
+        tp, lf = int(round(y0 - calib.centers[kb][0])) - 1 + a, int(round(x0 - calib.centers[kb][1])) - 1 + b
+        ys[i] = tp + di + calib.centers[kb][0]
+        xs[i] = lf + dj + calib.centers[kb][1]
+        pages[i] = kb
+        # brightness from the full-resolution image: least-squares amplitude of the best template (a template
+        # of a few reduced pixels explains only part of a small image's light)
+        tb = calib.templates[kb]
+        win = img[tp:tp + tb.shape[0], lf:lf + tb.shape[1]]
+        den = float((tb * tb).sum())
+        if win.shape == tb.shape and den > 0:
+            mass[i] = max(float((tb * win).sum()) / den, 0.0) * float(np.clip(tb, 0, None).sum())
+    out["x_px"], out["y_px"], out["z"], out["cm"], out["page"] = xs, ys, zs, cms, pages
+    out["mass"] = mass
     return out
