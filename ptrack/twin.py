@@ -196,7 +196,7 @@ def infer_parameters(table: pd.DataFrame, temperature: float, viscosity: float, 
                      height: float | None = None, wall_z: float = 0.0, wall_hydrodynamics: bool = True,
                      field: float | None = None, density: float | None = None, fluid_density: float = 998.2,
                      debye_length: float = 100e-9, permittivity: float = 78.5, motion_blur: float = 1 / 6,
-                     n_boot: int = 200, seed: int = 0) -> dict:
+                     n_boot: int = 200, seed: int = 0, pipeline_bias: dict | None = None) -> dict:
     """Radius (or viscosity), zeta potential, charge, number density and heights from a trajectories table.
 
     Parameters
@@ -224,6 +224,10 @@ def infer_parameters(table: pd.DataFrame, temperature: float, viscosity: float, 
         m and relative permittivity, for Henry's function and the charge.
     motion_blur : float
         R of the movie (for the velocity error model).
+    pipeline_bias : dict, optional
+        ``{"D": (factor, rel_err), "v_z": (factor, rel_err)}``: what the pipeline does to D_xy and v_z,
+        as truth / tracks of a twin (:func:`pipeline_bias_of`); the measured values are multiplied by
+        the factors (errors added in quadrature) before the radius and zeta are derived.
 
     Returns
     -------
@@ -291,8 +295,17 @@ def infer_parameters(table: pd.DataFrame, temperature: float, viscosity: float, 
             out["notes"].append(f"rows from contact with the wall on dropped ({len(table) - len(used)} rows; "
                                 f"{int(flagged['deposited'].sum())} of them stationary sideways)")
             out["n_deposited_tracks"] = int(flagged.groupby("particle")["deposited"].any().sum())
+    Dd, Dde = dict(res.D), dict(res.D_err)
+    if pipeline_bias and "D" in pipeline_bias:
+        fD, eD = pipeline_bias["D"]
+        for a in Dd:
+            Dde[a] = math.hypot(Dde[a] * fD, Dd[a] * fD * eD)
+            Dd[a] = Dd[a] * fD
+        D, De = Dd["xy"], Dde["xy"]
+        R_est = radius if radius is not None else solve_R(D, used)
+        out["notes"].append(f"D corrected for the pipeline by x{fD:.4g} +- {eD * fD:.2g} (twin truth / twin tracks)")
     ratio = ratio_of(used, R_est)
-    out.update({"D": dict(res.D), "D_err": dict(res.D_err), "D_method": "CVE over tracks, field-of-view corrected",
+    out.update({"D_measured": dict(res.D), "D": Dd, "D_err": Dde, "D_method": "CVE over tracks, field-of-view corrected",
                 "n_tracks": int(table["particle"].nunique()), "wall_ratio": ratio,
                 "wall_hydrodynamics": bool(wall_hydrodynamics), "wall_z_m": wall_z, "assumed_height_m": height})
     D0 = D / ratio
@@ -323,6 +336,13 @@ def infer_parameters(table: pd.DataFrame, temperature: float, viscosity: float, 
     except UserError as exc:
         out["drift"] = None
         out["notes"].append(f"no drift: {exc.cause}")
+    if pipeline_bias and "v_z" in pipeline_bias and out["drift"] and "z" in out["drift"]:
+        fv, ev = pipeline_bias["v_z"]
+        d = out["drift"]["z"]
+        d["v_measured"] = d["v"]
+        d["v_err"] = math.hypot(d["v_err"] * fv, d["v"] * fv * ev)
+        d["v"] = d["v"] * fv
+        out["notes"].append(f"v_z corrected for the pipeline by x{fv:.4g} +- {ev * fv:.2g} (twin truth / twin tracks)")
     # sedimentation and electrophoresis
     v_sed = None
     if density is not None:
@@ -365,6 +385,27 @@ def infer_parameters(table: pd.DataFrame, temperature: float, viscosity: float, 
                           "median": float(np.nanmedian(z)),
                           "start_p05": float(np.nanpercentile(first, 5)), "start_p95": float(np.nanpercentile(first, 95)),
                           "unit": "m above the wall (wall_z subtracted)"}
+    return out
+
+
+def pipeline_bias_of(twin_tracks: pd.DataFrame, twin_truth: pd.DataFrame, infer_kwargs: dict) -> dict:
+    """What the pipeline does to D_xy and v_z, measured on a twin: (truth / tracks, relative error) each.
+
+    Both tables go through :func:`infer_parameters` with the same settings (deposited rows dropped the
+    same way), so the factors carry only what tracking and localisation change. Their errors are the two
+    estimates' errors in quadrature (the truth and its tracks share the same particles, so this is
+    conservative).
+    """
+    kw = dict(infer_kwargs)
+    kw.pop("pipeline_bias", None)
+    a = infer_parameters(twin_tracks, **kw)
+    b = infer_parameters(twin_truth, **{**kw, "motion_blur": 0.0})
+    out = {"D": (b["D"]["xy"] / a["D"]["xy"],
+                 math.hypot(a["D_err"]["xy"] / a["D"]["xy"], b["D_err"]["xy"] / b["D"]["xy"]))}
+    if a.get("drift") and b.get("drift") and "z" in a["drift"] and "z" in b["drift"]:
+        va, vb = a["drift"]["z"], b["drift"]["z"]
+        if abs(va["v"]) > 3 * va["v_err"] and abs(vb["v"]) > 3 * vb["v_err"]:
+            out["v_z"] = (vb["v"] / va["v"], math.hypot(va["v_err"] / va["v"], vb["v_err"] / vb["v"]))
     return out
 
 
@@ -572,7 +613,7 @@ def run_twin(movie, out_dir, track_kwargs: dict, temperature: float, viscosity: 
              wall_hydrodynamics: bool = True, debye_length: float = 100e-9, permittivity: float = 78.5,
              optics: dict | None = None, camera: dict | None = None, focal_plane=None, overrides=None,
              seed: int = 1, n_boot: int = 200, n_perm: int = 2000, level: float = 0.05, progress: bool = False,
-             measured_table: pd.DataFrame | None = None) -> dict:
+             measured_table: pd.DataFrame | None = None, calibrate: int = 0) -> dict:
     """Movie -> inferred parameters -> scene -> simulate -> render -> track -> compare -> report.
 
     Parameters
@@ -597,6 +638,10 @@ def run_twin(movie, out_dir, track_kwargs: dict, temperature: float, viscosity: 
         Applied after inference (``particles.radius=3.25e-7``, ``camera.photons=2000``...).
     seed : int
         Simulation and rendering seed.
+    calibrate : int
+        Rounds of pipeline calibration: make a twin, measure what tracking does to D and v_z on it (its
+        truth against its tracks, :func:`pipeline_bias_of`), correct the measured values by that, and
+        make the twin again (0: none).
     """
     from sim.render import render_movie
     from sim.run import run_scene
@@ -630,6 +675,7 @@ def run_twin(movie, out_dir, track_kwargs: dict, temperature: float, viscosity: 
                               wall_hydrodynamics=wall_hydrodynamics, field=field, density=density,
                               fluid_density=fluid_density, debye_length=debye_length, permittivity=permittivity,
                               motion_blur=0.0, n_boot=n_boot, seed=seed)
+    notes0 = params["notes"]
     from sim.render import Camera, Optics
 
     opt = {**Optics().to_dict(), **(optics or {})}
@@ -661,65 +707,88 @@ def run_twin(movie, out_dir, track_kwargs: dict, temperature: float, viscosity: 
             focal_plane = float(json.loads(cp.read_text()).get("focal_plane", 0.0))
             params["notes"].append(f"focal plane {focal_plane:.3g} m from {cp}")
     timings["infer_s"] = time.perf_counter() - t1
-    # 3. scene and render settings
-    scene, view = build_scene(params, shape, px, dt, n_frames, density=density, fluid_density=fluid_density,
-                              wall_hydrodynamics=wall_hydrodynamics, depth_of_field=dof, height=height, seed=seed)
-    if three_d:
-        view["focal_plane"] = (focal_plane or 0.0) - wall_z
-    view.update({"brightfield": brightfield, "motion_blur_substeps": substeps, "render_seed": seed + 1})
-    render = {"view": view, "optics": opt, "camera": {k: v for k, v in cam.items() if v is not None}}
-    set_keys = apply_overrides(scene, render, overrides)
-    sc = scene_from_dict(scene, source=str(out / "scene.toml"))
-    header = (f"Simulated twin of {movie} (ptrack twin). SI units. Inferred from the movie's tracks: radius "
-              f"{params['radius_m']:.4g} m, viscosity {params['viscosity_Pa_s']:.4g} Pa s"
-              + (f", zeta {params['zeta_V']:.4g} V" if params.get("zeta_V") is not None else "")
-              + (f"\nOverridden (--set): {', '.join(set_keys)}" if set_keys else "")
-              + "\nRun alone with: ptrack simulate scene.toml")
-    comments = {"particles.count": "measured particles per frame per view area x box area",
-                "particles.radius": "m, from D (Stokes-Einstein, wall-corrected)",
-                "particles.zeta_potential": "V, from the drift along z and E (Henry's exact function)",
-                "domain.size": "m: the view plus a margin on each side (periodic sides: particles enter and leave)",
-                "domain.placement_z": "m: measured starting heights (3D) or the depth of field (2D)",
-                "time.dt": "s: a tenth of the frame interval"}
-    with atomic_output(out / "scene.toml", "w") as fh:
-        fh.write(to_toml(scene, comments, header))
-    with atomic_output(out / "render.toml", "w") as fh:
-        fh.write(to_toml({k: {kk: vv for kk, vv in v.items() if vv is not None} for k, v in render.items()},
-                         {}, "View, optics and camera of the twin (sim.render); measured on the movie where possible"))
-    # 4. simulate
-    t2 = time.perf_counter()
-    runres = run_scene(sc, out / "sim", seed=seed, progress=progress)
-    sim = read_table(runres.trajectories)
-    timings["simulate_s"] = time.perf_counter() - t2
-    R_sim = float(sc.particles.radius)
-    if view.get("sticking"):
-        D_sim = BOLTZMANN * sc.fluid.temperature / (6 * math.pi * sc.fluid.viscosity * R_sim)
-        sim = _stick(sim, R_sim, 0.0, tol=max(0.02 * R_sim, math.sqrt(2 * D_sim * sc.time.dt or dt / 10)))
-    # 5. render (view coordinates: the box shifted so that the view starts at 0; z in the table's frame)
-    t3 = time.perf_counter()
-    tab = sim.copy()
-    tab["x"] = tab["x"] - view["origin_x"]
-    tab["y"] = tab["y"] - view["origin_y"]
-    tab["z"] = tab["z"] + view["z_offset"]
-    Hh, Ww = view["shape"]
-    pad = 30 * px
-    keep = (tab["x"] > -pad) & (tab["x"] < Ww * px + pad) & (tab["y"] > -pad) & (tab["y"] < Hh * px + pad)
-    tab = tab[keep].drop(columns=[c for c in ("vx", "vy", "vz") if c in tab.columns])
-    tab.attrs["ptrack"] = {"frame_interval": dt, "pixel_size": px, "source": "ptrack twin simulation"}
-    optics_o, camera_o = _render_objects(render)
-    fp = view["focal_plane"] + (view["z_offset"] if three_d else 0.0)
-    paths = render_movie(tab, out / "twin", (Hh, Ww), optics_o, camera_o, focal_plane=fp,
-                         brightfield=view["brightfield"], motion_blur_substeps=int(view["motion_blur_substeps"]),
-                         seed=int(view["render_seed"]), compression="zlib", progress=progress)
-    timings["render_s"] = time.perf_counter() - t3
-    # 6. track the twin with the same settings, compare
-    t4 = time.perf_counter()
-    twin_tracks, _ = track_movie(paths["movie"], out=out / "twin_tracks.parquet", progress=progress, **track_kwargs)
-    timings["track_twin_s"] = time.perf_counter() - t4
-    truth = read_table(paths["truth"])
-    truth = truth[truth["in_frame"].astype(bool)].copy()
-    if not three_d:
-        truth["z"] = np.nan
+
+    def make_twin(params):
+        """Steps 3-6 for one set of parameters: scene, simulate, render, track."""
+        # 3. scene and render settings
+        scene, view = build_scene(params, shape, px, dt, n_frames, density=density, fluid_density=fluid_density,
+                                  wall_hydrodynamics=wall_hydrodynamics, depth_of_field=dof, height=height, seed=seed)
+        if three_d:
+            view["focal_plane"] = (focal_plane or 0.0) - wall_z
+        view.update({"brightfield": brightfield, "motion_blur_substeps": substeps, "render_seed": seed + 1})
+        render = {"view": view, "optics": opt, "camera": {k: v for k, v in cam.items() if v is not None}}
+        set_keys = apply_overrides(scene, render, overrides)
+        sc = scene_from_dict(scene, source=str(out / "scene.toml"))
+        header = (f"Simulated twin of {movie} (ptrack twin). SI units. Inferred from the movie's tracks: radius "
+                  f"{params['radius_m']:.4g} m, viscosity {params['viscosity_Pa_s']:.4g} Pa s"
+                  + (f", zeta {params['zeta_V']:.4g} V" if params.get("zeta_V") is not None else "")
+                  + (f"\nOverridden (--set): {', '.join(set_keys)}" if set_keys else "")
+                  + "\nRun alone with: ptrack simulate scene.toml")
+        comments = {"particles.count": "measured particles per frame per view area x box area",
+                    "particles.radius": "m, from D (Stokes-Einstein, wall-corrected)",
+                    "particles.zeta_potential": "V, from the drift along z and E (Henry's exact function)",
+                    "domain.size": "m: the view plus a margin on each side (periodic sides: particles enter and leave)",
+                    "domain.placement_z": "m: measured starting heights (3D) or the depth of field (2D)",
+                    "time.dt": "s: a tenth of the frame interval"}
+        with atomic_output(out / "scene.toml", "w") as fh:
+            fh.write(to_toml(scene, comments, header))
+        with atomic_output(out / "render.toml", "w") as fh:
+            fh.write(to_toml({k: {kk: vv for kk, vv in v.items() if vv is not None} for k, v in render.items()},
+                             {}, "View, optics and camera of the twin (sim.render); measured on the movie where possible"))
+        # 4. simulate
+        t2 = time.perf_counter()
+        runres = run_scene(sc, out / "sim", seed=seed, progress=progress)
+        sim = read_table(runres.trajectories)
+        timings["simulate_s"] = time.perf_counter() - t2
+        R_sim = float(sc.particles.radius)
+        if view.get("sticking"):
+            D_sim = BOLTZMANN * sc.fluid.temperature / (6 * math.pi * sc.fluid.viscosity * R_sim)
+            sim = _stick(sim, R_sim, 0.0, tol=max(0.02 * R_sim, math.sqrt(2 * D_sim * sc.time.dt or dt / 10)))
+        # 5. render (view coordinates: the box shifted so that the view starts at 0; z in the table's frame)
+        t3 = time.perf_counter()
+        tab = sim.copy()
+        tab["x"] = tab["x"] - view["origin_x"]
+        tab["y"] = tab["y"] - view["origin_y"]
+        tab["z"] = tab["z"] + view["z_offset"]
+        Hh, Ww = view["shape"]
+        pad = 30 * px
+        keep = (tab["x"] > -pad) & (tab["x"] < Ww * px + pad) & (tab["y"] > -pad) & (tab["y"] < Hh * px + pad)
+        tab = tab[keep].drop(columns=[c for c in ("vx", "vy", "vz") if c in tab.columns])
+        tab.attrs["ptrack"] = {"frame_interval": dt, "pixel_size": px, "source": "ptrack twin simulation"}
+        optics_o, camera_o = _render_objects(render)
+        fp = view["focal_plane"] + (view["z_offset"] if three_d else 0.0)
+        paths = render_movie(tab, out / "twin", (Hh, Ww), optics_o, camera_o, focal_plane=fp,
+                             brightfield=view["brightfield"], motion_blur_substeps=int(view["motion_blur_substeps"]),
+                             seed=int(view["render_seed"]), compression="zlib", progress=progress)
+        timings["render_s"] = time.perf_counter() - t3
+        # 6. track the twin with the same settings, compare
+        t4 = time.perf_counter()
+        twin_tracks, _ = track_movie(paths["movie"], out=out / "twin_tracks.parquet", progress=progress, **track_kwargs)
+        timings["track_twin_s"] = time.perf_counter() - t4
+        truth = read_table(paths["truth"])
+        truth = truth[truth["in_frame"].astype(bool)].copy()
+        if not three_d:
+            truth["z"] = np.nan
+        return sc, scene, render, set_keys, paths, twin_tracks, truth, R_sim
+
+    infer_kw = dict(temperature=temperature, viscosity=viscosity, radius=radius, height=height, wall_z=wall_z,
+                    wall_hydrodynamics=wall_hydrodynamics, field=field, density=density, fluid_density=fluid_density,
+                    debye_length=debye_length, permittivity=permittivity, motion_blur=0.0, n_boot=n_boot, seed=seed)
+    history = []
+    for it in range(int(calibrate) + 1):
+        sc, scene, render, set_keys, paths, twin_tracks, truth, R_sim = make_twin(params)
+        if it == int(calibrate):
+            break
+        # the twin's truth and its tracks went through the same estimators: their ratio is what the pipeline
+        # does to D and v_z; the measured values are corrected by it and the twin made again
+        bias = pipeline_bias_of(twin_tracks, truth, infer_kw)
+        keep = {k: params[k] for k in ("camera_measured", "spot") if k in params}
+        history.append({"iteration": it + 1, "radius_m": params["radius_m"], "zeta_V": params.get("zeta_V"),
+                        "bias": {k: list(v) for k, v in bias.items()}})
+        params = infer_parameters(measured, **infer_kw, pipeline_bias=bias)
+        params.update(keep)
+        params["notes"] += [n for n in notes0 if n not in params["notes"]]
+    params["calibration_history"] = history
     t5 = time.perf_counter()
     blur = 0.0 if substeps == 0 else 1 / 6
     cmp1 = compare_tables([measured, twin_tracks], ["measured", "twin"], n_boot=n_boot, n_perm=n_perm, level=level,
@@ -744,6 +813,7 @@ def run_twin(movie, out_dir, track_kwargs: dict, temperature: float, viscosity: 
         "all_consistent": cmp1["all_consistent"], "meaning": meaning, "overrides": set_keys,
         "parameters": params, "scene": scene, "render": render,
         "twin_radius_m": R_sim, "n_simulated": int(sc.particles.count),
+        "calibration_history": params["calibration_history"],
         "measured_vs_twin": cmp1, "twin_vs_truth": cmp2, "timings_s": timings,
         "files": {"scene": str(out / "scene.toml"), "render": str(out / "render.toml"),
                   "twin_movie": str(paths["movie"]), "twin_truth": str(paths["truth"]),

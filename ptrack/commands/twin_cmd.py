@@ -55,6 +55,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override an inferred value: particles.radius, fluid.viscosity, fields.E, optics.na, "
                         "camera.photons, view.focal_plane ... (repeatable)")
+    p.add_argument("--calibrate", type=int, default=0, metavar="N",
+                   help="rounds of pipeline calibration: measure on the twin what tracking does to D and v_z "
+                        "(its truth against its tracks), correct the movie's values by it, make the twin again "
+                        "(default 0)")
     p.add_argument("--seed", type=int, default=1, help="simulation / rendering seed (default 1)")
     p.add_argument("--n-boot", type=int, default=200, help="particle bootstrap resamples (default 200)")
     p.add_argument("--level", type=float, default=0.05, help="family-wise error rate per comparison (Holm)")
@@ -81,6 +85,8 @@ def run(args) -> int:
             check_positive(f"--{name.replace('_', '-')}", v)
     if args.field is not None and (not math.isfinite(args.field) or args.field == 0):
         raise UserError(f"--field {args.field} must be a finite non-zero E_z", "give E_z in V/m")
+    if not 0 <= args.calibrate <= 5:
+        raise UserError(f"--calibrate {args.calibrate} is outside 0..5", "give 0 (none), 1 or 2 rounds")
     kw = track_kwargs(args)
     optics = {"na": args.na, "wavelength": args.wavelength, "medium_index": args.medium_index,
               "astigmatism": args.astigmatism}
@@ -91,7 +97,8 @@ def run(args) -> int:
                    density=args.density, fluid_density=args.fluid_density, height=args.height, wall_z=args.wall_z,
                    wall_hydrodynamics=not args.no_wall_hydrodynamics, debye_length=args.debye_length,
                    permittivity=args.permittivity, optics=optics, camera=camera, focal_plane=args.focal_plane,
-                   overrides=args.set, seed=args.seed, n_boot=args.n_boot, level=args.level, progress=args.progress)
+                   overrides=args.set, seed=args.seed, n_boot=args.n_boot, level=args.level, progress=args.progress,
+                   calibrate=args.calibrate)
     p = res["parameters"]
     print(f"{args.movie}: {p['n_tracks']} tracks; inferred ({p['inferred']} from D_xy = "
           f"{_pm(p['D']['xy'], p['D_err']['xy'], 1e12, 'um^2/s')}, wall ratio {p['wall_ratio']:.4g}):")
@@ -101,6 +108,9 @@ def run(args) -> int:
         print(f"  zeta      {_pm(res['zeta_V'], res['zeta_err_V'], 1e3, 'mV')}  (Henry f = {p['henry_f']:.4f}; "
               f"v_ep = {p['v_electrophoretic_m_s'] * 1e6:.4g} um/s)")
         print(f"  charge    {_pm(res['charge_C'], res['charge_err_C'], 1 / 1.602176634e-19, 'e')}")
+    for h in res["calibration_history"]:
+        b = ", ".join(f"{k} x{v[0]:.4g} +- {v[0] * v[1]:.2g}" for k, v in h["bias"].items())
+        print(f"  pipeline calibration round {h['iteration']}: twin truth / twin tracks: {b}")
     if res["overrides"]:
         print(f"  overridden: {', '.join(res['overrides'])} (twin radius {res['twin_radius_m'] * 1e9:.4g} nm)")
     print(format_table(res["measured_vs_twin"]))
