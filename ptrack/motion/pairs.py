@@ -302,7 +302,7 @@ def pair_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), max_lag: int = 3, mo
         R in [0, 1/4] (1/6 full-frame exposure, 0 instantaneous); only the
         localisation error depends on it.
     frame_interval_s : float, optional
-        s; default from the ``t`` column or the ``frame_interval`` metadata.
+        s; default :func:`ptrack.motion.tracks.frame_interval` (the one rule).
     window : float, optional
         Cut-off (m, every component): sources farther than this from a
         target (after the drift) are ignored; default 5 step standard
@@ -348,10 +348,7 @@ def pair_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), max_lag: int = 3, mo
     max_lag = int(max_lag)
     if max_lag < 2:
         raise UserError(f"max_lag = {max_lag}", "give at least 2 lags (the slope of variance against lag is D)")
-    if frame_interval_s is None:
-        dt = frame_interval(df)
-    else:
-        dt = float(frame_interval_s)
+    dt = frame_interval(df) if frame_interval_s is None else float(frame_interval_s)
     if not (math.isfinite(dt) and dt > 0):
         raise UserError(f"frame interval = {dt!r} s", "give a positive frame interval")
     pos = _frame_positions(df, comps)
@@ -365,47 +362,109 @@ def pair_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), max_lag: int = 3, mo
     span = hi - lo
     if np.any(span <= 0):
         raise UserError("the localisations do not span the field of view in every axis", "check the positions")
-    d = len(comps)
     n_loc = np.mean([len(v) for v in pos.values()])
-    density = n_loc / float(np.prod(span))
+    fits = _fit_all_lags(pos, comps, lo, hi, max_lag, window, n_loc / float(np.prod(span)))
+    lags = pd.DataFrame([f.row for f in fits])
+    kk = lags["lag"].to_numpy(float)
+    offsets = _pair_offsets(df, comps, offset, R)
+    var = {c: lags[f"s2_{c}_err"].to_numpy() ** 2 for c in comps}
+    s2_all = {c: lags[f"s2_{c}"].to_numpy() for c in comps}
+    fitted = _lag_estimates(kk, s2_all, var, None, dt, R)
+    known = _lag_estimates(kk, s2_all, var, offsets, dt, R) if offsets is not None else None
+    jack, n = _jackknife(sorted(pos), fits, comps, kk, var, offsets, dt, R, n_blocks, jackknife)
 
-    def fit_lag(k, cut, shift=None, theta0=None):
-        lp = _gather_pairs(pos, k, cut, lo, hi, shift)
-        if lp.n_tgt < 20 or len(lp.u) < 20:
-            raise UserError(f"lag {k}: only {lp.n_tgt} particles inside the field of view at one cut-off "
-                            f"({cut.max() * 1e6:.3g} um) from its edges",
-                            "give a larger field of view, more frames, or a smaller window")
-        if theta0 is None:
-            mu0 = np.zeros(d) if shift is None else np.asarray(shift) / cut
-            theta0 = np.r_[math.log(0.95), math.log(0.05 * lp.n_tgt / (lp.area_per_frame * lp.n_frames)),
-                           mu0, np.full(d, math.log(0.2))]
-        return _fit_pairs(lp, theta0), lp
+    # The localiser's sigma makes D far more precise, but the intercept it implies,
+    # 2 sigma^2 - 4 R D dt, hangs on the motion-blur R: a wrong R (e.g. 1/6 for a movie without
+    # blur) shifts D by 2R/(1-2R). Use it only where the fitted intercept agrees within 4
+    # jackknife SE (the jackknife understates the intercept's error by ~1.5x on 80-frame movies:
+    # at 2.5 SE one movie in six fell back to the imprecise fit for nothing).
+    offset_used = "fit"
+    if known is not None:
+        agree = offset == "sigma" or all(abs(fitted[1][c] - known[1][c]) <= 4.0 * _jk_se(jack["c"][c]) for c in comps)
+        offset_used = "sigma" if agree else "fit (the localiser's sigma with this motion blur R disagrees)"
+    Dc, cc = known if offset_used == "sigma" else fitted
+    Derr_c = {c: np.asarray(jack["known" if offset_used == "sigma" else "fit"][c]) for c in comps}
 
-    # Each lag gets its own cut-off, 5 step standard deviations: beyond it a source's Gaussian is
-    # negligible. The step size of lag 1 comes from a first fit with a cut-off of 1.5 particle
-    # spacings; that of lag k from lag k - 1 (s^2 grows about as k).
+    res_D, res_err, res_sig = {}, {}, {}
+    for a in axes:
+        cs = AXES[a]
+        res_D[a] = float(np.mean([Dc[c] for c in cs]))
+        res_err[a] = _jk_se(np.mean([Derr_c[c] for c in cs], axis=0))
+        # intercept = 2 sigma^2 - 4 R D dt per component
+        res_sig[a] = float(math.sqrt(max(np.mean([(cc[c] + 4 * R * Dc[c] * dt) / 2 for c in cs]), 0.0)))
+    # drift: mu_k = v k dt (no intercept: localisation noise has zero mean), weighted through the origin
+    mu1 = {}
+    for c in comps:
+        tk, w = kk * dt, 1.0 / np.maximum(lags[f"mu_{c}_err"].to_numpy(), 1e-300) ** 2
+        mu1[c] = float(np.sum(w * tk * lags[f"mu_{c}"].to_numpy()) / np.sum(w * tk * tk))
+    # P(another particle nearer than the partner) for a Poisson field in the plane and Gaussian steps
+    D_plane = float(np.mean([Dc[c] for c in comps[:2]]))
+    x = 2 * math.pi * n_loc / float(np.prod(span[:2])) * 2 * max(D_plane, 0.0) * dt
+    return PairDiffusionResult(D=res_D, D_err=res_err, sigma_loc=res_sig, drift_velocity=mu1, lags=lags,
+                               window={c: float(w) for c, w in zip(comps, fits[0].win)}, link_ambiguity=float(x / (1 + x)),
+                               frame_interval=dt, motion_blur=R, n_blocks=n, offset_used=offset_used,
+                               intercept={c: float(fitted[1][c]) for c in comps},
+                               intercept_err={c: _jk_se(jack["c"][c]) for c in comps})
+
+
+@dataclass
+class _LagFit:
+    """One lag's maximum-likelihood fit: parameters, data, cut-off, inverse Hessian, rho fitted or held."""
+
+    theta: np.ndarray
+    data: _LagPairs
+    win: np.ndarray
+    h_inv: np.ndarray | None
+    rho_free: bool
+    row: dict
+
+
+def _fit_lag(pos, k, cut, lo, hi, shift=None):
+    """Maximum-likelihood parameters of lag ``k`` at cut-off ``cut`` (per component), and its pairs."""
+    lp = _gather_pairs(pos, k, cut, lo, hi, shift)
+    if lp.n_tgt < 20 or len(lp.u) < 20:
+        raise UserError(f"lag {k}: only {lp.n_tgt} particles inside the field of view at one cut-off "
+                        f"({cut.max() * 1e6:.3g} µm) from its edges",
+                        "give a larger field of view, more frames, or a smaller window")
+    d = len(cut)
+    mu0 = np.zeros(d) if shift is None else np.asarray(shift) / cut
+    theta0 = np.r_[math.log(0.95), math.log(0.05 * lp.n_tgt / (lp.area_per_frame * lp.n_frames)),
+                   mu0, np.full(d, math.log(0.2))]
+    return _fit_pairs(lp, theta0), lp
+
+
+def _fit_all_lags(pos, comps, lo, hi, max_lag, window, density) -> list:
+    """:class:`_LagFit` of every lag 1..max_lag.
+
+    Each lag gets its own cut-off, 5 step standard deviations: beyond it a
+    source's Gaussian is negligible. The step size of lag 1 comes from a
+    first fit with a cut-off of 1.5 particle spacings; that of lag k from
+    lag k - 1 (s^2 grows about as k). A cut-off is at most a third of the
+    field, so that targets one cut-off inside it remain.
+    """
+    d = len(comps)
+    span = hi - lo
     spacing = density ** (-1.0 / d)
-    rows, thetas, data, wins, covs, free = [], [], [], [], [], []
+    fits = []
     for k in range(1, max_lag + 1):
         if k == 1:
-            # first pass: where the peak is (drift) and how wide
+            # first pass (twice: the first cut-off is a guess from the spacing): where the peak is (drift), how wide
             w1 = np.minimum(np.full(d, 1.5 * spacing), span / 3.5) if window is None else \
                 np.full(d, check_window(window, span))
-            # (twice: the first cut-off is a guess from the spacing; a cut-off is at most a third of
-            # the field, so that targets one cut-off inside it remain)
             shift = None
             for _pass in range(2):
-                th, _lp = fit_lag(k, w1, shift)
+                th, _lp = _fit_lag(pos, k, w1, lo, hi, shift)
                 shift = th[2:2 + d] * w1
                 w1 = np.minimum(np.full(d, 5.0 * float(np.max(np.exp(th[2 + d:]) * w1))), span / 3.0)
             win = w1
         else:
-            s_prev = max(math.sqrt(rows[-1][f"s2_{c}"]) for c in comps)
+            prev = fits[-1].row
+            s_prev = max(math.sqrt(prev[f"s2_{c}"]) for c in comps)
             win = np.minimum(np.full(d, 5.0 * s_prev * math.sqrt(k / (k - 1))), span / 3.0)
-            shift = np.array([rows[-1][f"mu_{c}"] for c in comps]) * k / (k - 1)
+            shift = np.array([prev[f"mu_{c}"] for c in comps]) * k / (k - 1)
         if window is not None:
             win = np.full(d, check_window(window, span))
-        th, lp = fit_lag(k, win, shift)
+        th, lp = _fit_lag(pos, k, win, lo, hi, shift)
         # Unmatched particles (rho) are kept only if the data ask for them (likelihood ratio above
         # the 5 % point of the boundary chi-bar^2, 2.71): with every particle detected, a free
         # rho >= 0 sits on its boundary, takes the far tail of the steps and biases s^2 low by up
@@ -415,8 +474,6 @@ def pair_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), max_lag: int = 3, mo
         if not rho_free:
             th = th0
         cov, h_inv = _pair_cov(th, lp, rho_free)
-        covs.append(h_inv)
-        free.append(rho_free)
         sd = np.exp(th[2 + d:]) * win
         row = {"lag": k, "alpha": math.exp(th[0]),
                "unmatched_density": math.exp(th[1]) / float(np.prod(win)) if rho_free else 0.0,
@@ -427,103 +484,73 @@ def pair_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), max_lag: int = 3, mo
             row[f"mu_{c}"] = th[2 + i] * win[i]
             row[f"mu_{c}_err"] = win[i] * math.sqrt(max(cov[2 + i, 2 + i], 0.0))
             row[f"window_{c}"] = win[i]
-        rows.append(row)
-        thetas.append(th)
-        data.append(lp)
-        wins.append(win)
-    lags = pd.DataFrame(rows)
-    kk = lags["lag"].to_numpy(float)
-    offsets = _pair_offsets(df, comps, offset, R)
-    var = {c: lags[f"s2_{c}_err"].to_numpy() ** 2 for c in comps}
+        fits.append(_LagFit(th, lp, win, h_inv, rho_free, row))
+    return fits
 
-    def estimates(s2_by_comp, known):
-        """Per component (D, intercept): the intercept fitted, or taken from the localiser's sigma and R."""
-        Dc, cc = {}, {}
-        for c in comps:
-            if known is None:
-                Dc[c], cc[c] = _lag_line(kk, s2_by_comp[c], var[c], dt)
-            else:
-                # known localisation variance: s2_k - 2 sigma^2 = 2 D dt (k - 2R); weighted mean over lags
-                x = 2 * dt * (kk - 2 * R)
-                w = x * x / var[c]
-                Dc[c] = float(np.sum(w * (s2_by_comp[c] - known[c]) / x) / np.sum(w))
-                cc[c] = float(known[c] - 4 * R * Dc[c] * dt)
-        return Dc, cc
 
-    s2_all = {c: lags[f"s2_{c}"].to_numpy() for c in comps}
-    fitted = estimates(s2_all, None)
-    known = estimates(s2_all, offsets) if offsets is not None else None
+def _lag_estimates(kk, s2_by_comp, var, known, dt, R):
+    """Per component (D, intercept) from the step variances of the lags ``kk``.
 
-    # jackknife over contiguous blocks of source frames (displacements of nearby frames are correlated)
-    frames_all = np.array(sorted(pos))
+    ``known`` None: weighted line ``s2 = 2 D dt k + c``; else ``known[c]`` is
+    the localisation term 2 sigma^2: ``s2_k - 2 sigma^2 = 2 D dt (k - 2R)``,
+    a weighted mean over the lags.
+    """
+    Dc, cc = {}, {}
+    for c, s2 in s2_by_comp.items():
+        if known is None:
+            Dc[c], cc[c] = _lag_line(kk, s2, var[c], dt)
+        else:
+            x = 2 * dt * (kk - 2 * R)
+            w = x * x / var[c]
+            Dc[c] = float(np.sum(w * (s2 - known[c]) / x) / np.sum(w))
+            cc[c] = float(known[c] - 4 * R * Dc[c] * dt)
+    return Dc, cc
+
+
+def _jackknife(frames_all, fits, comps, kk, var, offsets, dt, R, n_blocks, method):
+    """Block-deleted D (intercept fitted, and from the localiser's sigma) and intercepts, per component.
+
+    Blocks are contiguous runs of source frames (displacements of nearby
+    frames are correlated). ``method`` "one-step": each block-deleted fit is
+    one Newton step from the full fit (the likelihood without the block has
+    gradient -g_block there and Hessian ~ H (1 - share of the block));
+    "refit": refitted from the full fit and its inverse Hessian.
+    """
+    frames_all = np.asarray(frames_all)
     n_blocks = int(min(max(n_blocks, 2), len(frames_all)))
     blocks = np.array_split(frames_all, n_blocks)
+    d = len(comps)
     jack = {"fit": {c: [] for c in comps}, "known": {c: [] for c in comps}, "c": {c: [] for c in comps}}
     for blk in blocks:
         b0, b1 = blk[0], blk[-1]
-        s2j = {c: np.empty(max_lag) for c in comps}
-        for j, (th, lp) in enumerate(zip(thetas, data)):
-            if jackknife == "refit" or covs[j] is None:
-                # warm start: the full fit and its inverse Hessian
-                thj = _fit_pairs(lp.subset(lambda f: (f < b0) | (f > b1)), th, covs[j], rho_free=free[j])
+        s2j = {c: np.empty(len(fits)) for c in comps}
+        for j, f in enumerate(fits):
+            th = f.theta
+            if method == "refit" or f.h_inv is None:
+                thj = _fit_pairs(f.data.subset(lambda fr: (fr < b0) | (fr > b1)), th, f.h_inv, rho_free=f.rho_free)
             else:
-                # one Newton step from the full fit: the likelihood without the block has gradient
-                # -g_block there and Hessian ~ H (1 - share of the block)
-                inblk = lp.subset(lambda f: (f >= b0) & (f <= b1))
-                idx = _free(th, free[j])
+                inblk = f.data.subset(lambda fr: (fr >= b0) & (fr <= b1))
+                idx = _free(th, f.rho_free)
                 g_b = _pair_nll(th, inblk, prior=False)[1][idx]
-                share = inblk.n_tgt / max(lp.n_tgt, 1)
+                share = inblk.n_tgt / max(f.data.n_tgt, 1)
                 thj = th.copy()
-                thj[idx] = th[idx] + covs[j] @ g_b / max(1.0 - share, 0.5)
+                thj[idx] = th[idx] + f.h_inv @ g_b / max(1.0 - share, 0.5)
             for i, c in enumerate(comps):
-                s2j[c][j] = (math.exp(thj[2 + d + i]) * wins[j][i]) ** 2
-        Df, cf = estimates(s2j, None)
-        Dk, _ = estimates(s2j, offsets) if offsets is not None else (Df, None)
+                s2j[c][j] = (math.exp(thj[2 + d + i]) * f.win[i]) ** 2
+        Df, cf = _lag_estimates(kk, s2j, var, None, dt, R)
+        Dk, _ = _lag_estimates(kk, s2j, var, offsets, dt, R) if offsets is not None else (Df, None)
         for c in comps:
             jack["fit"][c].append(Df[c])
             jack["known"][c].append(Dk[c])
             jack["c"][c].append(cf[c])
-    n = len(blocks)
+    return jack, len(blocks)
 
-    def jk_se(vals):
-        v = np.asarray(vals)
-        return float(math.sqrt((n - 1) / n * np.sum((v - v.mean()) ** 2)))
 
-    # The localiser's sigma makes D far more precise, but the intercept it implies,
-    # 2 sigma^2 - 4 R D dt, hangs on the motion-blur R: a wrong R (e.g. 1/6 for a movie without
-    # blur) shifts D by 2R/(1-2R). Use it only where the fitted intercept agrees within 4
-    # jackknife SE (the jackknife understates the intercept's error by ~1.5x on 80-frame movies:
-    # at 2.5 SE one movie in six fell back to the imprecise fit for nothing).
-    offset_used = "fit"
-    if known is not None:
-        agree = offset == "sigma" or all(abs(fitted[1][c] - known[1][c]) <= 4.0 * jk_se(jack["c"][c]) for c in comps)
-        offset_used = "sigma" if agree else "fit (the localiser's sigma with this motion blur R disagrees)"
-    Dc, cc = known if offset_used == "sigma" else fitted
-    Derr_c = {c: np.asarray(jack["known" if offset_used == "sigma" else "fit"][c]) for c in comps}
-
-    res_D, res_err, res_sig = {}, {}, {}
-    for a in axes:
-        cs = AXES[a]
-        res_D[a] = float(np.mean([Dc[c] for c in cs]))
-        jj = np.mean([Derr_c[c] for c in cs], axis=0)
-        res_err[a] = float(math.sqrt((n - 1) / n * np.sum((jj - jj.mean()) ** 2)))
-        # intercept = 2 sigma^2 - 4 R D dt per component
-        res_sig[a] = float(math.sqrt(max(np.mean([(cc[c] + 4 * R * Dc[c] * dt) / 2 for c in cs]), 0.0)))
-    # drift: mu_k = v k dt (no intercept: localisation noise has zero mean), weighted through the origin
-    mu1 = {}
-    for c in comps:
-        tk, w = kk * dt, 1.0 / np.maximum(lags[f"mu_{c}_err"].to_numpy(), 1e-300) ** 2
-        mu1[c] = float(np.sum(w * tk * lags[f"mu_{c}"].to_numpy()) / np.sum(w * tk * tk))
-    D_plane = float(np.mean([Dc[c] for c in comps[:2]]))
-    # P(another particle nearer than the partner) for a Poisson field in the plane and Gaussian steps
-    plane_density = n_loc / float(np.prod(span[:2]))
-    x = 2 * math.pi * plane_density * 2 * max(D_plane, 0.0) * dt
-    ambiguity = x / (1 + x)
-    return PairDiffusionResult(D=res_D, D_err=res_err, sigma_loc=res_sig, drift_velocity=mu1, lags=lags,
-                               window={c: float(w) for c, w in zip(comps, wins[0])}, link_ambiguity=float(ambiguity),
-                               frame_interval=dt, motion_blur=R, n_blocks=n, offset_used=offset_used,
-                               intercept={c: float(fitted[1][c]) for c in comps},
-                               intercept_err={c: jk_se(jack["c"][c]) for c in comps})
+def _jk_se(vals) -> float:
+    """Jackknife standard error of the block-deleted estimates ``vals``."""
+    v = np.asarray(vals, float)
+    n = len(v)
+    return float(math.sqrt((n - 1) / n * np.sum((v - v.mean()) ** 2)))
 
 
 def _pair_offsets(df, comps, offset, R):
