@@ -31,23 +31,28 @@ def _progress(total, desc, enabled):
     return tqdm(total=total, desc=desc, unit="frame", disable=not enabled, leave=False, dynamic_ncols=True)
 
 
-def locate_movie(movie, brightfield: bool = False, diameter: float | None = None, calib=None, snr: float = 7.0,
-                 gain: float = 1.0, offset: float = 0.0, read_noise: float = 0.0, background: str = "spatial",
-                 cm_min: float = 0.5, frames=None, progress: bool = True) -> tuple[pd.DataFrame, dict]:
+def locate_movie(movie, brightfield: bool | None = None, diameter: float | None = None, calib=None,
+                 snr: float | None = None, gain: float = 1.0, offset: float = 0.0, read_noise: float = 0.0,
+                 background: str = "spatial", cm_min: float = 0.5, frames=None,
+                 progress: bool = True) -> tuple[pd.DataFrame, dict]:
     """Localise the particles of every frame of an open movie.
 
     Parameters
     ----------
     movie : ptrack.io.Movie
-    brightfield : bool
-        Dark particles on a bright field (inverted first).
+    brightfield : bool, optional
+        Dark particles on a bright field (True) or bright particles (False);
+        None: decided from the first frame (:func:`ptrack.image.detect.detect`)
+        and reported in ``info['polarity_from']``.
     diameter : float, optional
-        Particle image diameter (px, = 4 sigma of the spot); estimated from
-        the movie if None (2D only).
+        Particle image diameter (px, = 4 sigma of the spot): selects the
+        single-size detector. None (default, 2D): multi-scale detection, each
+        particle localised at its own size.
     calib : ptrack.calibration.Calibration, optional
         Defocus calibration: z by GDPT; without it the data are 2D.
-    snr : float
-        Detection threshold (noise units of the filtered image).
+    snr : float, optional
+        Detection threshold in local noise units; default from a false-alarm
+        rate of 1 per 10^6 px (2D), 7 (3D and single-size 2D).
     gain, offset, read_noise : float
         Camera: ADU per photo-electron, baseline ADU, read noise (e- rms).
     background : {"spatial", "temporal", "none"}
@@ -64,28 +69,48 @@ def locate_movie(movie, brightfield: bool = False, diameter: float | None = None
         ``frame``, ``x_px``, ``y_px`` and the localiser's columns (``z`` in m
         and ``cm`` in 3D).
     info : dict
-        Settings used (``sigma_px``, ``background``...).
+        Settings used (``sigma_px``, ``background``, ``polarity``...) and
+        ``stage_times_s`` (read, locate, z).
     """
     from . import calibration as cal_mod
+    from .image.detect import detect
     from .io import check_not_blank
-    from .locate import diameter_to_sigma, estimate_sigma, locate, sigma_to_diameter
+    from .locate import diameter_to_sigma, locate, sigma_to_diameter
     from .preprocess import prepare, temporal_background
 
     check_not_blank(movie)
     n = len(movie)
     frames = range(n) if frames is None else list(frames)
-    info = {"brightfield": bool(brightfield), "background": background, "snr": float(snr),
+    if snr is not None and not (math.isfinite(float(snr)) and float(snr) > 0):
+        raise UserError(f"snr = {snr} is not a positive number", "give a threshold such as 5 (noise units)")
+    times = {"read": 0.0, "locate": 0.0, "z": 0.0}
+    info = {"background": background, "snr": None if snr is None else float(snr),
             "gain": float(gain), "offset": float(offset), "read_noise": float(read_noise)}
+    if brightfield is None:
+        # polarity from the data (first frame), fixed for the movie
+        t = time.perf_counter()
+        first = movie[frames[0] if len(frames) else 0]
+        times["read"] += time.perf_counter() - t
+        t = time.perf_counter()
+        pol = detect(first, offset=offset)["polarity"]
+        times["locate"] += time.perf_counter() - t
+        brightfield = bool(pol < 0)
+        info["polarity_from"] = "data"
+    else:
+        info["polarity_from"] = "--brightfield" if brightfield else "option (fluorescence)"
+    brightfield = bool(brightfield)
+    info["brightfield"] = brightfield
+    info["polarity"] = "dark particles on a bright field" if brightfield else "bright particles on a dark field"
+    multiscale = diameter is None and calib is None
+    sigma = None
     if diameter is not None:
         sigma = diameter_to_sigma(check_positive("diameter", diameter))
-    elif calib is None:
-        sample = [movie[i] for i in np.unique(np.linspace(0, n - 1, min(3, n)).astype(int))]
-        sigma = estimate_sigma(sample, brightfield=brightfield, gain=gain, offset=offset)
-    else:
+    elif calib is not None:
         sigma = 2.0
-    info["sigma_px"] = float(sigma)
-    info["diameter_px"] = sigma_to_diameter(sigma)
-    bg_size = max(15.0, 12.0 * sigma) if calib is None else 3.0 * calib.size
+    info["detector"] = "multi-scale (false-alarm rate 1e-6 per px)" if multiscale else "single size"
+    info["sigma_px"] = None if sigma is None else float(sigma)
+    info["diameter_px"] = None if sigma is None else sigma_to_diameter(sigma)
+    bg_size = max(15.0, 12.0 * (sigma or 1.5)) if calib is None else 3.0 * calib.size
     bg = background
     if background == "temporal":
         bg = temporal_background(movie)
@@ -93,30 +118,46 @@ def locate_movie(movie, brightfield: bool = False, diameter: float | None = None
             bg = float(np.iinfo(movie.dtype).max if movie.dtype.kind in "ui" else bg.max()) - bg
     elif background not in ("spatial", "none"):
         raise UserError(f"background = {background!r} is not known", "use spatial, temporal or none")
+    has_3d = hasattr(cal_mod, "locate_frame_3d")
     chunks = []
     with _progress(len(frames), Path(movie.source).name, progress) as bar:
         for i in frames:
+            t = time.perf_counter()
             raw = movie[i]
-            if calib is None and not brightfield and isinstance(bg, str) and bg == "spatial":
-                img = None      # fast path: the localiser finds the background at block resolution
-            elif calib is not None:
-                # GDPT: inverted but not thresholded (brightfield rings have bright and dark lobes),
-                # prepared as the calibration's templates were
-                img = cal_mod.prepare_gdpt(raw, calib, brightfield=brightfield, background=bg)
+            times["read"] += time.perf_counter() - t
+            t = time.perf_counter()
+            if calib is not None:
+                if has_3d:
+                    df = cal_mod.locate_frame_3d(raw, calib, brightfield=brightfield, background=bg,
+                                                 snr=7.0 if snr is None else snr, cm_min=cm_min, gain=gain,
+                                                 offset=offset, read_noise=read_noise)
+                else:
+                    img = cal_mod.prepare_gdpt(raw, calib, brightfield=brightfield, background=bg)
+                    df = cal_mod.locate_3d(img, calib, snr=7.0 if snr is None else snr, cm_min=cm_min)
+                times["z"] += time.perf_counter() - t
+                df.insert(0, "frame", np.full(len(df), i, np.int64))
+            elif multiscale and isinstance(bg, str) and bg == "spatial":
+                df = locate(raw, snr=snr, gain=gain, offset=offset, read_noise=read_noise,
+                            brightfield=brightfield, frame_no=i)
+                times["locate"] += time.perf_counter() - t
             else:
-                img = prepare(raw, brightfield=brightfield, background=bg, bg_size=bg_size)
-            if calib is None:
-                df = locate(raw, img, sigma=sigma, snr=snr, gain=gain, offset=offset, read_noise=read_noise,
-                            brightfield=brightfield)
-            else:
-                df = cal_mod.locate_3d(img, calib, snr=snr, cm_min=cm_min)
-            df.insert(0, "frame", np.full(len(df), i, np.int64))
+                img = None
+                if brightfield or not (isinstance(bg, str) and bg == "spatial"):
+                    img = prepare(raw, brightfield=brightfield, background=bg, bg_size=bg_size)
+                df = locate(raw, img, sigma=sigma or 1.5, snr=7.0 if snr is None else snr, gain=gain, offset=offset,
+                            read_noise=read_noise, brightfield=brightfield, frame_no=i)
+                times["locate"] += time.perf_counter() - t
             chunks.append(df)
             bar.update(1)
     feats = pd.concat(chunks, ignore_index=True) if chunks else pd.DataFrame()
     if len(feats) == 0:
         raise UserError(f"no particle found in {movie.source}",
-                        "check the movie (brightfield needs --brightfield), lower --snr or give --diameter")
+                        "check the movie (is it empty or out of focus?), lower --snr or give --diameter")
+    if multiscale and "size" in feats:
+        # the typical particle image, for the summary (each particle was localised at its own size)
+        info["sigma_px"] = float(np.median(feats["size"]))
+        info["diameter_px"] = sigma_to_diameter(info["sigma_px"])
+    info["stage_times_s"] = {k: round(v, 4) for k, v in times.items()}
     return feats, info
 
 
@@ -133,8 +174,8 @@ def default_output(movie_path, out_dir=None) -> Path:
 
 def track_movie(movie, out=None, pixel_size: float | None = None, frame_interval: float | None = None,
                 calib=None, calib_z=None, calib_step: float | None = None, calib_z0: float = 0.0,
-                brightfield: bool = False, diameter: float | None = None, search_range: float | None = None,
-                memory: int = 3, min_length: int = 5, snr: float = 7.0, gain: float = 1.0, offset: float = 0.0,
+                brightfield: bool | None = None, diameter: float | None = None, search_range: float | None = None,
+                memory: int = 3, min_length: int = 5, snr: float | None = None, gain: float = 1.0, offset: float = 0.0,
                 read_noise: float = 0.0, background: str = "spatial", cm_min: float = 0.5,
                 progress: bool = True) -> tuple[pd.DataFrame, dict]:
     """Movie -> trajectories table.
@@ -178,6 +219,14 @@ def track_movie(movie, out=None, pixel_size: float | None = None, frame_interval
         mv.require_calibration()
         px, dt = mv.pixel_size, mv.frame_interval
         cal = None
+        if calib is not None and brightfield is None:
+            # the calibration is prepared with the movie's polarity: decide it first (from the data)
+            from .image.detect import detect
+
+            brightfield = bool(detect(mv[0], offset=offset)["polarity"] < 0)
+            polarity_from = "data"
+        else:
+            polarity_from = None
         if calib is not None:
             cal = calib if isinstance(calib, Calibration) else load_calibration(
                 calib, z_csv=calib_z, z_step=calib_step, z0=calib_z0, brightfield=brightfield)
@@ -190,10 +239,15 @@ def track_movie(movie, out=None, pixel_size: float | None = None, frame_interval
         n_frames = len(mv)
         source = mv.source
         shape = mv.shape
+    if polarity_from:
+        info["polarity_from"] = polarity_from
     n_loc = len(feats)
+    t_link = time.perf_counter()
     linked = link(feats, search_range=search_range, memory=memory, pixel_size=px)
     link_info = dict(linked.attrs.get("link", {}))
     linked = filter_short(linked, min_length)
+    t_link = time.perf_counter() - t_link
+    t_table = time.perf_counter()
     if len(linked) == 0:
         raise UserError(f"no trajectory of {min_length} or more frames in {source}",
                         "lower --min-length, raise --memory or give a larger --search-range")
@@ -223,14 +277,21 @@ def track_movie(movie, out=None, pixel_size: float | None = None, frame_interval
                     calib_template_px=cal.size, cm_min=float(cm_min))
     table = make_table(linked["frame"], linked["frame"].to_numpy() * dt, linked["particle"],
                        linked["x_px"].to_numpy() * px, linked["y_px"].to_numpy() * px, z, meta=meta, **opt)
+    stages = dict(info.get("stage_times_s", {}))
+    stages["link"] = round(t_link, 4)
+    stages["table"] = round(time.perf_counter() - t_table, 4)
     wall = time.perf_counter() - t0
     summary = {"movie": str(source), "n_frames": int(n_frames), "n_localisations": int(n_loc),
                "n_tracks": int(table["particle"].nunique()), "wall_time_s": round(wall, 3),
                "frames_per_s": round(n_frames / wall, 2) if wall > 0 else None,
                "pixel_size_m": px, "frame_interval_s": dt, "diameter_px": info["diameter_px"],
-               "search_range_px": link_info.get("search_range_px"), "three_d": cal is not None}
+               "search_range_px": link_info.get("search_range_px"), "three_d": cal is not None,
+               "polarity": info.get("polarity"), "polarity_from": info.get("polarity_from"),
+               "detector": info.get("detector"), "stage_times_s": stages}
     if out is not None:
+        t = time.perf_counter()
         write_table(table, out)
+        stages["write"] = round(time.perf_counter() - t, 4)
         summary["output"] = str(out)
     return table, summary
 
@@ -270,9 +331,16 @@ def track_many(movies, out_dir=None, scheduler: str | None = None, n_workers: in
                         "rename the movies or track them separately with --out")
     from dask.distributed import Client, LocalCluster
 
+    # workers may run elsewhere or in another folder: paths are resolved here, on the client
+    movies = [os.path.abspath(str(m)) for m in movies]
+    outs = [Path(os.path.abspath(str(o))) for o in outs]
     cluster = None
     if scheduler:
-        client = Client(scheduler)
+        try:
+            client = Client(scheduler, timeout="5s")
+        except (OSError, TimeoutError) as exc:
+            raise UserError(f"cannot reach the dask scheduler at {scheduler} ({type(exc).__name__})",
+                            "start it (dask scheduler) or omit --scheduler for a local cluster") from None
     else:
         nw = n_workers or max(1, min(len(movies), os.cpu_count() or 1))
         cluster = LocalCluster(n_workers=nw, threads_per_worker=1, processes=True, dashboard_address=None)
@@ -287,6 +355,8 @@ def track_many(movies, out_dir=None, scheduler: str | None = None, n_workers: in
                 results.append(f.result())
             except UserError as exc:
                 results.append({"movie": str(m), "error": str(exc)})
+            except Exception as exc:     # a worker's failure: one line per movie, not a traceback block
+                results.append({"movie": str(m), "error": f"{type(exc).__name__}: {exc}".splitlines()[0]})
     finally:
         client.close()
         if cluster is not None:

@@ -27,12 +27,17 @@ def add_track_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--calib-z0", metavar="Z0", type=float, default=0.0, help="z of page 0 (m, default 0; negative values as --calib-z0=-3e-6)")
     g.add_argument("--cm-min", type=float, default=0.5, help="correlation threshold Cm for z (default 0.5)")
     g = p.add_argument_group("image")
-    g.add_argument("--brightfield", action="store_true", help="dark particles on a bright field (inverted first)")
+    pol = g.add_mutually_exclusive_group()
+    pol.add_argument("--brightfield", action="store_const", const=True, default=None,
+                     help="dark particles on a bright field (default: polarity decided from the data and printed)")
+    pol.add_argument("--fluorescence", dest="brightfield", action="store_const", const=False,
+                     help="bright particles on a dark field")
     g.add_argument("--pixel-size", metavar="M", type=float, help="m per pixel in the sample (overrides metadata)")
     g.add_argument("--frame-interval", metavar="S", type=float, help="s between frames (overrides metadata)")
     g.add_argument("--diameter", metavar="PX", type=float,
                    help="particle image diameter in px (4 sigma of the spot); estimated from the movie if omitted")
-    g.add_argument("--snr", type=float, default=7.0, help="detection threshold in noise units (default 7)")
+    g.add_argument("--snr", type=float, default=None,
+                   help="detection threshold in local noise units (default: set for 1 false detection per 10^6 px)")
     g.add_argument("--background", choices=("spatial", "temporal", "none"), default="spatial",
                    help="background subtraction (default spatial: per-frame opening; temporal: per-pixel median)")
     g.add_argument("--gain", type=float, default=1.0, help="camera ADU per photo-electron (default 1)")
@@ -44,7 +49,27 @@ def add_track_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--min-length", type=int, default=5, help="shortest trajectory kept, frames (default 5)")
 
 
+def _finite(name, v, positive=True, allow_zero=False):
+    import math
+
+    if v is None:
+        return v
+    ok = math.isfinite(v) and (v > 0 or (allow_zero and v == 0) or not positive)
+    if not ok:
+        need = "a finite number" if not positive else ("0 or more" if allow_zero else "a positive number")
+        raise UserError(f"{name} {v} is not {need}", f"give {name} as {need}")
+    return v
+
+
 def track_kwargs(args) -> dict:
+    _finite("--snr", args.snr)
+    _finite("--search-range", args.search_range)
+    _finite("--diameter", args.diameter)
+    _finite("--gain", args.gain)
+    _finite("--offset", args.offset, positive=False)
+    _finite("--read-noise", args.read_noise, allow_zero=True)
+    _finite("--pixel-size", args.pixel_size)
+    _finite("--frame-interval", args.frame_interval)
     if args.memory < 0:
         raise UserError(f"--memory {args.memory} is negative", "give 0 or more frames")
     if args.min_length < 2:
@@ -68,6 +93,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, help="local worker processes for several movies (default: one per core)")
 
 
+def _check_writable(out: Path) -> None:
+    """Refuse an output whose folder cannot be written, before any work."""
+    import os
+
+    d = Path(out).resolve().parent
+    if not d.exists():
+        raise UserError(f"the output folder {d} does not exist", "create it or give another --out")
+    if not os.access(d, os.W_OK):
+        raise UserError(f"the output folder {d} is not writable", "give a writable --out")
+
+
 def run(args) -> int:
     from ..pipeline import default_output, track_many, track_movie
 
@@ -76,7 +112,11 @@ def run(args) -> int:
         out = Path(args.out) if args.out else default_output(args.movies[0])
         if out.is_dir():
             out = default_output(args.movies[0], out)
+        _check_writable(out)
         _, summary = track_movie(args.movies[0], out=out, **kw)
+        if summary.get("polarity_from") == "data":
+            print(f"image polarity from the data: {summary['polarity']} "
+                  f"(override with --brightfield or --fluorescence)")
         print(f"{summary['n_frames']} frames, {summary['n_localisations']} localisations, {summary['n_tracks']} tracks "
               f"in {summary['wall_time_s']:.1f} s ({summary['frames_per_s']:.1f} frames/s) -> {out}")
         result = summary

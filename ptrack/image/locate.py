@@ -323,19 +323,40 @@ def _locate_multiscale(frame, snr=None, gain=1.0, offset=0.0, read_noise=0.0, br
     ecc = np.zeros(n)
     ok = np.zeros(n, bool)
     poisson = polarity > 0
-    # Gaussian fits at each particle's own scale (one call per scale of the ladder); only spots whose
-    # windows overlap are fitted jointly; no split test (the scale ladder gives each image its size,
-    # so a wide spot is a large image, not an unresolved pair)
+    # Gaussian fits at each particle's own scale: spots are fitted in size classes spanning at most 2x
+    # (the width is a fitted parameter, so the start needs only the right window); spots with a
+    # neighbour whose light reaches into the window are fitted jointly, and a wide or elongated spot
+    # is tested for being two unresolved ones (both only where images overlap)
     blob = ~ring
-    for s in np.unique(scale[blob]):
-        q = np.nonzero(blob & (scale == s))[0]
+    uniq = np.unique(scale[blob])
+    classes = []
+    for s in uniq:
+        if classes and s <= 2.05 * classes[-1][0]:
+            classes[-1].append(s)
+        else:
+            classes.append([s])
+    for cl in classes:
+        q = np.nonzero(blob & np.isin(scale, cl))[0]
+        s0 = float(np.median(scale[q]))
         src = raw if poisson else sub
-        half = max(3, int(math.ceil(3 * s)))
-        fit = fit_spots(src, rows[q], cols[q], float(s), gain=gain if poisson else 1.0,
+        fit = fit_spots(src, rows[q], cols[q], s0, gain=gain if poisson else 1.0,
                         offset=offset if poisson else 0.0, read_noise=read_noise, poisson=poisson,
-                        amps=det["snr"][q], split=False, group_radius=2.0 * half)
-        x[q], y[q], vx[q], vy[q] = fit["x"], fit["y"], fit["var_x"], fit["var_y"]
-        photons[q], bgp[q], size[q], ecc[q], ok[q] = fit["photons"], fit["bg"], fit["s"], fit["ecc"], fit["ok"]
+                        amps=det["snr"][q], split=poisson)   # brightfield blobs with halos are not Gaussian: no split
+        idx = q[fit["index"]]
+        first = np.arange(len(q))
+        x[q], y[q], vx[q], vy[q] = fit["x"][first], fit["y"][first], fit["var_x"][first], fit["var_y"][first]
+        photons[q], bgp[q], size[q] = fit["photons"][first], fit["bg"][first], fit["s"][first]
+        ecc[q], ok[q] = fit["ecc"][first], fit["ok"][first]
+        extra = np.arange(len(q), len(fit["x"]))
+        if len(extra):      # the second halves of split spots: new rows, detection values of their parent
+            src_i = idx[extra]
+            rows, cols, scale = np.r_[rows, rows[src_i]], np.r_[cols, cols[src_i]], np.r_[scale, scale[src_i]]
+            ring, blob = np.r_[ring, np.zeros(len(extra), bool)], np.r_[blob, np.zeros(len(extra), bool)]
+            det = dict(det, snr=np.r_[det["snr"], det["snr"][src_i]], signal=np.r_[det["signal"], det["signal"][src_i]])
+            x, y = np.r_[x, fit["x"][extra]], np.r_[y, fit["y"][extra]]
+            vx, vy = np.r_[vx, fit["var_x"][extra]], np.r_[vy, fit["var_y"][extra]]
+            photons, bgp = np.r_[photons, fit["photons"][extra]], np.r_[bgp, fit["bg"][extra]]
+            size, ecc, ok = np.r_[size, fit["s"][extra]], np.r_[ecc, fit["ecc"][extra]], np.r_[ok, fit["ok"][extra]]
     q = np.nonzero(ring)[0]
     if len(q):
         half = np.maximum(4, np.ceil(3.0 * scale[q])).astype(np.int64)
