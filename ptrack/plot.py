@@ -339,3 +339,48 @@ def plot_velocity(df: pd.DataFrame, vel: pd.DataFrame, path=None, profile: pd.Da
     if path is not None:
         save_figure(fig, path)
     return fig
+
+
+def plot_wall_ratios(a: float, heights=(), ratio=None, ax=None, path=None):
+    """D/D0 near a wall against the gap, for every parallel and perpendicular law of :mod:`ptrack.motion.wall`.
+
+    Parameters
+    ----------
+    a : float
+        Particle radius, m.
+    heights : sequence of float
+        Centre heights (m) marked by vertical lines.
+    ratio : float, optional
+        A measured D/D0 marked by a horizontal line.
+    ax, path : optional
+        Axes to draw into; PNG to write.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    from .motion import wall
+
+    fig, ax = _axes(ax, figsize=(6.4, 4.4))
+    x = 1.0 + np.geomspace(1e-4, 1e2, 600)
+    h = x * a
+    g = (h - a) * UM
+    ax.plot(g, wall.parallel_ratio(h, a, "auto"), "k-", label="parallel, recommended (GCB + Faxen)")
+    ax.plot(g, wall.parallel_ratio(h, a, "faxen"), "b--", label="parallel, Faxen to (a/h)^5")
+    ax.plot(g, wall.parallel_ratio(h, a, "first_order"), "c:", label="parallel, eq. 4.1 (1 - 9/16 a/h)")
+    ax.plot(g, wall.perpendicular_ratio(h, a, "brenner"), "r-", label="perpendicular, Brenner")
+    ax.plot(g, wall.perpendicular_ratio(h, a, "bevan_prieve"), "m--", label="perpendicular, Bevan-Prieve")
+    for hm in heights:
+        ax.axvline((hm - a) * UM, color="0.5", lw=0.8)
+    if ratio is not None:
+        ax.axhline(ratio, color="0.5", lw=0.8)
+    ax.set_xscale("log")
+    ax.set_xlabel("gap h - a between particle surface and wall (µm); h = centre height")
+    ax.set_ylabel("D / D0")
+    ax.set_ylim(0, 1.02)
+    ax.set_title(f"hindered diffusion near a wall, radius a = {a * 1e9:.4g} nm")
+    ax.legend(fontsize=8, loc="upper left")
+    fig.tight_layout()
+    if path is not None:
+        save_figure(fig, path)
+    return fig

@@ -2,7 +2,7 @@
 
 Give the particle radius and either the height of the particle CENTRE above
 the wall (--height) or a measured D/D0 (--ratio). Inputs are SI (m); the
-output prints lengths in nm and um with their names. Parallel ratios: first
+output prints lengths in nm and µm with their names. Parallel ratios: first
 order (the seed's eq. 4.1, 1 - 9/16 a/h), Faxen's series, and the recommended
 form (Goldman-Cox-Brenner lubrication near contact blended into Faxen);
 perpendicular: Brenner's exact series and Bevan & Prieve's closed form.
@@ -40,7 +40,7 @@ def _length(v):
         return "n/a"
     if abs(v) < 1e-6:
         return f"{v * 1e9:.1f} nm"
-    return f"{v * 1e6:.4g} um"
+    return f"{v * 1e6:.4g} µm"
 
 
 def _try(fn):
@@ -83,8 +83,8 @@ def run(args) -> int:
             result["D_parallel_m2_per_s"] = {k: D0 * v for k, v in par.items()}
             result["D_perpendicular_m2_per_s"] = {k: D0 * v for k, v in perp.items()}
             best = par.get("recommended", par["first_order"])
-            lines.append(f"with D0 = {D0 * 1e12:.4g} um^2/s: D_parallel = {D0 * best * 1e12:.4g} um^2/s, "
-                         f"D_perpendicular = {D0 * perp['brenner'] * 1e12:.4g} um^2/s")
+            lines.append(f"with D0 = {D0 * 1e12:.4g} µm²/s: D_parallel = {D0 * best * 1e12:.4g} µm²/s, "
+                         f"D_perpendicular = {D0 * perp['brenner'] * 1e12:.4g} µm²/s")
     else:
         r = args.ratio
         if not (math.isfinite(r) and 0 < r < 1):
@@ -119,43 +119,12 @@ def run(args) -> int:
     print("\n".join(lines))
     if args.plot:
         marks = [args.height] if args.height is not None else [v for v in result["height_m"].values() if v]
-        _plot(args.plot, a, marks, args.ratio)
+        from ..plot import plot_wall_ratios
+
+        plot_wall_ratios(a, marks, args.ratio, path=args.plot)
         print(f"wrote {args.plot}")
     if args.json:
         with atomic_output(args.json, "w") as fh:
             json.dump(result, fh, indent=2)
         print(f"wrote {args.json}")
     return 0
-
-
-def _plot(path, a, heights, ratio=None):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import numpy as np
-
-    x = 1.0 + np.geomspace(1e-4, 1e2, 600)
-    h = x * a
-    g = (h - a) * 1e6
-    fig, ax = plt.subplots(figsize=(6.4, 4.4))
-    ax.plot(g, wall.parallel_ratio(h, a, "auto"), "k-", label="parallel, recommended (GCB + Faxen)")
-    ax.plot(g, wall.parallel_ratio(h, a, "faxen"), "b--", label="parallel, Faxen to (a/h)^5")
-    first = wall.parallel_ratio(h, a, "first_order")
-    ax.plot(g, first, "c:", label="parallel, eq. 4.1 (1 - 9/16 a/h)")
-    ax.plot(g, wall.perpendicular_ratio(h, a, "brenner"), "r-", label="perpendicular, Brenner")
-    ax.plot(g, wall.perpendicular_ratio(h, a, "bevan_prieve"), "m--", label="perpendicular, Bevan-Prieve")
-    for hm in heights:
-        ax.axvline((hm - a) * 1e6, color="0.5", lw=0.8)
-    if ratio is not None:
-        ax.axhline(ratio, color="0.5", lw=0.8)
-    ax.set_xscale("log")
-    ax.set_xlabel("gap h - a between particle surface and wall (um); h = centre height")
-    ax.set_ylabel("D / D0")
-    ax.set_ylim(0, 1.02)
-    ax.set_title(f"hindered diffusion near a wall, radius a = {a * 1e9:.4g} nm")
-    ax.legend(fontsize=8, loc="upper left")
-    fig.tight_layout()
-    with atomic_output(path, None) as tmp:
-        fig.savefig(tmp, format="png", dpi=120)
-    plt.close(fig)
