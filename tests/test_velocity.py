@@ -275,3 +275,32 @@ def test_velocity_of_the_true_epd_tracks_recovers_the_henry_velocity():
     assert 0.9 < len(trimmed) / len(moving) <= 1.0
     ens2 = V.ensemble_velocity(V.particle_velocity(trimmed, motion_blur=0.0), n_boot=2000, seed=0).set_index("axis")
     assert abs(ens2.loc["z", "v"] - vz) < 3 * ens2.loc["z", "v_err"]
+
+
+def test_velocity_command_writes_into_the_working_folder_not_beside_the_input(tmp_path, monkeypatch, capsys):
+    from ptrack.table import write_table
+
+    data, work = tmp_path / "data", tmp_path / "work"
+    data.mkdir()
+    work.mkdir()
+    traj = write_table(V.drifting_tracks(10, 30, D0, DT, VEL, seed=5), data / "tr.parquet")
+    monkeypatch.chdir(work)
+    assert _run_cmd([str(traj), "--motion-blur", "0", "--bins", "0"]) == 0
+    assert (work / "tr_velocity.csv").exists() and (work / "tr_velocity.png").exists()
+    assert sorted(p.name for p in data.iterdir()) == ["tr.parquet"]
+
+
+def test_velocity_command_no_velocity_message_counts_positions_not_rows(tmp_path, capsys):
+    """Issue 15: 'no track has 5 or more positions (longest: 30)' contradicted itself: rows are not positions
+    when a coordinate is NaN."""
+    from ptrack.table import write_table
+
+    df = V.drifting_tracks(6, 30, D0, DT, VEL, seed=6)
+    z = df["z"].to_numpy().copy()
+    z[df["frame"].to_numpy() % 10 != 0] = np.nan        # z found in 3 of 30 frames
+    df["z"] = z
+    traj = write_table(df, tmp_path / "tr.parquet")
+    from ptrack.errors import UserError
+
+    with pytest.raises(UserError, match=r"the most positions with a finite z in one track is 3 \(of 30 rows\)"):
+        _run_cmd([str(traj), "--axes", "z", "--report", str(tmp_path / "r")])
