@@ -207,29 +207,51 @@ def build_calibration(stack, z, pixel_size=None, template_size: int | None = Non
 
 
 def load_calibration(path, z_csv=None, z_step: float | None = None, z0: float = 0.0, pixel_size=None,
-                     template_size: int | None = None, brightfield: bool = False) -> Calibration:
+                     template_size: int | None = None, brightfield: bool = False, max_beads: int | None = None,
+                     fine_step="auto") -> Calibration:
     """Read a calibration stack (any movie format of :func:`ptrack.io.open_movie`) and build its templates.
 
-    Heights: ``z_csv`` (CSV with columns page, z in m), or ``z_step``
-    (page k at ``z0 + k z_step``).
+    Heights, first found of: ``z_csv`` (CSV with columns page, z in m);
+    ``z_step`` (page k at ``z0 + k z_step``); a CSV beside the stack
+    (``<stem>_z.csv``, ``<stem>.z.csv`` or ``calib_z.csv``); the stack's
+    own metadata (Micro-Manager stage positions, OME PositionZ or
+    PhysicalSizeZ, ImageJ spacing; a spacing starts at ``z0``). Heights no
+    stack can have (beyond 1 mm, or a step far too small for how fast the
+    particle image grows) are refused. ``info["z_source"]`` says where the
+    heights came from. Other parameters as :func:`build_calibration`.
     """
+    from .gdpt.heights import check_heights, heights_from_metadata, z_csv_beside
     from .io import open_movie
 
-    if z_csv is None and z_step is None:
-        raise UserError("the heights of the calibration pages are not given",
-                        "give --calib-z CSV (columns page, z in m) or --calib-step DZ (m) [--calib-z0 Z0]")
     with open_movie(path, pixel_size=pixel_size) as mv:
         K = len(mv)
         if K < 3:
             raise UserError(f"calibration stack {path} has {K} page(s)", "a calibration needs at least 3 heights")
-        stack = np.stack([mv[i] for i in range(K)])
         px = mv.pixel_size
+        if z_csv is None and z_step is None:
+            z_csv = z_csv_beside(path)
+            meta = None if z_csv is not None else heights_from_metadata(path, K, float(z0))
+            if z_csv is None and meta is None:
+                raise UserError("the heights of the calibration pages are not given",
+                                "give --calib-z CSV (columns page, z in m) or --calib-step DZ (m) [--calib-z0 Z0], "
+                                "or put calib_z.csv beside the stack")
+        stack = np.stack([mv[i] for i in range(K)])
     if z_csv is not None:
         z = read_calib_z(z_csv, K)
-    else:
+        what = str(z_csv)
+    elif z_step is not None:
         dz = check_positive("calibration step", z_step)
         z = float(z0) + dz * np.arange(K)
-    return build_calibration(stack, z, px, template_size, brightfield, source=str(path))
+        what = "--calib-step/--calib-z0"
+    else:
+        z, what = meta
+        what = f"the stack's metadata ({what})"
+    check_heights(z, what)
+    cal = build_calibration(stack, z, px, template_size, brightfield, source=str(path), max_beads=max_beads,
+                            fine_step=fine_step)
+    check_heights(z, what, cal)
+    cal.info["z_source"] = what
+    return cal
 
 
 def prepare_gdpt(raw, calib: Calibration, brightfield: bool = False, background="spatial") -> np.ndarray:
