@@ -317,11 +317,14 @@ def check_writable_dir(path) -> Path:
 
 
 @contextlib.contextmanager
-def atomic_dir(path):
-    """Build a folder under a temporary name beside ``path``; it replaces ``path`` only when complete.
+def atomic_dir(path, last: str = "summary.json"):
+    """Build a folder's files under a temporary name beside ``path``; they reach ``path`` only when all are written.
 
-    An interrupt (Ctrl-C) or an error leaves ``path`` as it was and no
-    temporary folder behind.
+    A new folder is renamed into place in one step. Into an existing folder
+    (which may hold other files, e.g. the trajectories table) the files are
+    moved one by one, ``last`` at the end, so a report is complete once its
+    ``last`` file is new. An interrupt (Ctrl-C) or an error while writing
+    leaves ``path`` as it was and no temporary folder behind.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -331,14 +334,12 @@ def atomic_dir(path):
     os.chmod(tmp, 0o777 & ~umask)                 # mkdtemp makes 0700: honour the umask like mkdir
     try:
         yield tmp
-        old = None
-        if path.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=path.parent))
-            os.rmdir(old)
-            os.replace(path, old)
-        os.replace(tmp, path)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        if not path.exists():
+            os.replace(tmp, path)
+            return
+        for f in sorted(tmp.iterdir(), key=lambda f: f.name == last):
+            os.replace(f, path / f.name)
+        tmp.rmdir()
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

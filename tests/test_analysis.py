@@ -120,3 +120,8 @@ def test_interrupted_report_leaves_no_half_report(tmp_path, monkeypatch):
     assert sorted(p.name for p in rep.iterdir()) == before             # the previous report, untouched
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
     assert json.loads((rep / "summary.json").read_text())["n_tracks"] == a.summary["n_tracks"]
+    # a report into a folder that holds other files (the trajectories table) keeps them
+    (rep / "trajectories.parquet").write_bytes(b"table")
+    monkeypatch.undo()
+    write_report(a, rep)
+    assert (rep / "trajectories.parquet").read_bytes() == b"table" and (rep / "msd.png").exists()
