@@ -216,6 +216,7 @@ def infer_parameters(table: pd.DataFrame, temperature: float, viscosity: float, 
     wall_hydrodynamics : bool
         Correct D for the hindered mobility near the wall (False: free-space
         mobility, as in a movie rendered without wall hydrodynamics).
+        (:func:`run_twin` also takes ``wall=False``: no substrate near the particles at all.)
     field : float, optional
         E_z, V/m (+z away from the wall): infer the electrophoretic mobility, zeta and charge from v_z.
     density, fluid_density : float
@@ -610,7 +611,7 @@ def _render_objects(render: dict):
 
 def run_twin(movie, out_dir, track_kwargs: dict, temperature: float, viscosity: float, radius=None, field=None,
              density=None, fluid_density: float = 998.2, height=None, wall_z: float = 0.0,
-             wall_hydrodynamics: bool = True, debye_length: float = 100e-9, permittivity: float = 78.5,
+             wall: bool = True, wall_hydrodynamics: bool = True, debye_length: float = 100e-9, permittivity: float = 78.5,
              optics: dict | None = None, camera: dict | None = None, focal_plane=None, overrides=None,
              seed: int = 1, n_boot: int = 200, n_perm: int = 2000, level: float = 0.05, progress: bool = False,
              measured_table: pd.DataFrame | None = None, calibrate: int = 0) -> dict:
@@ -669,6 +670,11 @@ def run_twin(movie, out_dir, track_kwargs: dict, temperature: float, viscosity: 
     n_frames = int(meta.get("n_frames") or measured["frame"].max() + 1)
     three_d = bool(np.isfinite(measured["z"].to_numpy(float)).any())
     brightfield = bool(track_kwargs.get("brightfield"))
+    if three_d and not wall:
+        # no substrate near the particles (e.g. a movie around focus in the bulk): the twin's box floor is
+        # put 1 um below the lowest measured height, a reflecting plane without hindrance
+        wall_z = float(np.nanmin(measured["z"].to_numpy(float))) - 1e-6
+        wall_hydrodynamics = False
     # 2. infer
     t1 = time.perf_counter()
     params = infer_parameters(measured, temperature, viscosity, radius=radius, height=height, wall_z=wall_z,

@@ -41,6 +41,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--permittivity", type=float, default=78.5, help="relative permittivity (default 78.5, water)")
     g.add_argument("--height", type=float, help="2D: centre height above the wall, m (wall correction); default bulk")
     g.add_argument("--wall-z", type=float, default=0.0, help="3D: z of the wall in the calibration's frame, m (default 0)")
+    g.add_argument("--no-wall", action="store_true",
+                   help="3D: no substrate near the particles (bulk around focus): reflecting planes beyond the "
+                        "measured heights, no hindrance")
     g.add_argument("--no-wall-hydrodynamics", action="store_true",
                    help="free-space mobility down to the wall (no hindrance in the inference or the twin)")
     g = p.add_argument_group("optics (not measurable from the movie; defaults: the seed's 63x / NA 0.75, 519 nm)")
@@ -95,6 +98,7 @@ def run(args) -> int:
         camera["read_noise"] = kw["read_noise"]
     res = run_twin(args.movie, args.out, kw, args.temperature, args.viscosity, radius=args.radius, field=args.field,
                    density=args.density, fluid_density=args.fluid_density, height=args.height, wall_z=args.wall_z,
+                   wall=not args.no_wall,
                    wall_hydrodynamics=not args.no_wall_hydrodynamics, debye_length=args.debye_length,
                    permittivity=args.permittivity, optics=optics, camera=camera, focal_plane=args.focal_plane,
                    overrides=args.set, seed=args.seed, n_boot=args.n_boot, level=args.level, progress=args.progress,
