@@ -220,9 +220,16 @@ def load_calibration(path, z_csv=None, z_step: float | None = None, z0: float = 
     particle image grows) are refused. ``info["z_source"]`` says where the
     heights came from. Other parameters as :func:`build_calibration`.
     """
+    from pathlib import Path
+
     from .gdpt.heights import check_heights, heights_from_metadata, z_csv_beside
     from .io import open_movie
 
+    no_heights = UserError("the heights of the calibration pages are not given",
+                           "give --calib-z CSV (columns page, z in m) or --calib-step DZ (m) [--calib-z0 Z0], "
+                           "or put calib_z.csv beside the stack")
+    if z_csv is None and z_step is None and not Path(str(path)).is_file():
+        raise no_heights
     with open_movie(path, pixel_size=pixel_size) as mv:
         K = len(mv)
         if K < 3:
@@ -232,9 +239,7 @@ def load_calibration(path, z_csv=None, z_step: float | None = None, z0: float = 
             z_csv = z_csv_beside(path)
             meta = None if z_csv is not None else heights_from_metadata(path, K, float(z0))
             if z_csv is None and meta is None:
-                raise UserError("the heights of the calibration pages are not given",
-                                "give --calib-z CSV (columns page, z in m) or --calib-step DZ (m) [--calib-z0 Z0], "
-                                "or put calib_z.csv beside the stack")
+                raise no_heights
         stack = np.stack([mv[i] for i in range(K)])
     if z_csv is not None:
         z = read_calib_z(z_csv, K)
