@@ -20,7 +20,8 @@ import pandas as pd
 
 from .errors import UserError
 
-__all__ = ["nearest_neighbour_distance", "link", "filter_short", "drift", "subtract_drift"]
+__all__ = ["nearest_neighbour_distance", "link", "filter_short", "drift", "subtract_drift", "to_trajectories",
+           "from_trackpy", "to_trackpy"]
 
 
 def nearest_neighbour_distance(features: pd.DataFrame, n_frames: int = 10) -> float:
@@ -154,3 +155,102 @@ def subtract_drift(df: pd.DataFrame, axes=("x", "y")) -> pd.DataFrame:
     from . import msd
 
     return msd.subtract_drift(df, axes=axes)
+
+
+def to_trajectories(linked: pd.DataFrame, pixel_size: float, frame_interval: float, meta: dict | None = None,
+                    renumber: bool = True) -> pd.DataFrame:
+    """Linked features in pixels -> the SI trajectories table (:mod:`ptrack.table`).
+
+    The step after :func:`ptrack.locate.locate` + :func:`link` (or
+    ``trackpy.batch`` + ``trackpy.link`` via :func:`from_trackpy`), so a
+    notebook user gets the table ``ptrack track`` writes.
+
+    Parameters
+    ----------
+    linked : DataFrame
+        ``frame``, ``particle``, ``x_px``, ``y_px`` (px) and optionally ``z``
+        (m) and the localiser's columns (``mass``, ``size``, ``ecc``,
+        ``signal``, ``sigma_x_px``, ``sigma_y_px``; ``cm``, ``chi2``, ``edge``
+        in 3D).
+    pixel_size : float
+        m per px in the sample plane.
+    frame_interval : float
+        s per frame.
+    meta : dict, optional
+        Extra metadata (``pixel_size`` and ``frame_interval`` are set here).
+    renumber : bool
+        Particles numbered 0..n-1 by first appearance, ties by position
+        (trackpy's own ids depend on set iteration order).
+
+    Returns
+    -------
+    DataFrame
+        Trajectories table: ``frame``, ``t`` (s), ``particle``, ``x``, ``y``,
+        ``z`` (m; NaN in 2D), ``x_px``, ``y_px`` and the optional columns,
+        ``sigma_x``/``sigma_y`` in m.
+    """
+    from .errors import check_positive
+    from .table import UNITS, make_table
+
+    px = check_positive("pixel_size", pixel_size)
+    dt = check_positive("frame_interval", frame_interval)
+    missing = [c for c in ("frame", "particle", "x_px", "y_px") if c not in linked.columns]
+    if missing:
+        raise UserError(f"the feature table lacks the column(s) {missing}",
+                        "give linked features with frame, particle, x_px, y_px (see ptrack.link.link)")
+    linked = linked.reset_index(drop=True).copy()
+    if renumber and len(linked):
+        firsts = linked.sort_values(["frame", "y_px", "x_px"], kind="stable").drop_duplicates("particle")
+        order = firsts["particle"].to_numpy()
+        linked["particle"] = linked["particle"].map({p: i for i, p in enumerate(order)}).astype(np.int64)
+    opt = {c: linked[c] for c in ("x_px", "y_px", "mass", "size", "ecc", "signal", "cm", "chi2") if c in linked}
+    if "edge" in linked:
+        opt["edge"] = linked["edge"].astype(bool)
+    for c in ("x", "y"):
+        if f"sigma_{c}_px" in linked:
+            opt[f"sigma_{c}"] = linked[f"sigma_{c}_px"] * px
+    z = linked["z"].to_numpy(float) if "z" in linked else None
+    m = {"pixel_size": px, "frame_interval": dt, "units": {**UNITS, "size": "px", "mass": "ADU", "signal": "ADU",
+                                                           "ecc": "1"}}
+    m.update(meta or {})
+    m["pixel_size"], m["frame_interval"] = px, dt
+    frame = linked["frame"].to_numpy(np.int64)
+    return make_table(frame, frame * dt, linked["particle"].to_numpy(np.int64), linked["x_px"].to_numpy(float) * px,
+                      linked["y_px"].to_numpy(float) * px, z, meta=m, **opt)
+
+
+def from_trackpy(features: pd.DataFrame, pixel_size: float, frame_interval: float,
+                 z_column: str | None = None) -> pd.DataFrame:
+    """A trackpy table (``x``, ``y`` in px, ``frame``, ``particle``) -> the SI trajectories table.
+
+    trackpy's ``x``/``y`` are pixels; read as metres they give D ~ 10^12 times
+    too large. This renames them to ``x_px``/``y_px`` and scales by
+    ``pixel_size`` (:func:`to_trajectories`). ``z_column`` (m) is kept as z.
+    """
+    if not {"x", "y", "frame"} <= set(features.columns):
+        raise UserError("the trackpy table lacks x, y or frame", "give trackpy.batch/link output (x, y in px)")
+    f = features.rename(columns={"x": "x_px", "y": "y_px"}).reset_index(drop=True)
+    if "particle" not in f:
+        raise UserError("the trackpy table has no particle column", "link it first (trackpy.link)")
+    if z_column is not None:
+        f["z"] = f[z_column].astype(float)
+    f = f.drop(columns=[c for c in ("z",) if c in f and z_column is None])
+    return to_trajectories(f, pixel_size, frame_interval, meta={"tracker": "trackpy"})
+
+
+def to_trackpy(table: pd.DataFrame, pixel_size: float | None = None) -> pd.DataFrame:
+    """The SI trajectories table -> a trackpy table (``frame``, ``particle``, ``x``, ``y`` in px).
+
+    The pixel size comes from the table's metadata unless given.
+    """
+    from .table import metadata
+
+    px = pixel_size if pixel_size is not None else metadata(table).get("pixel_size")
+    if not px:
+        raise UserError("the table has no pixel size", "pass pixel_size= (m per px)")
+    out = pd.DataFrame({"frame": table["frame"].to_numpy(np.int64), "particle": table["particle"].to_numpy(np.int64),
+                        "x": table["x"].to_numpy(float) / px, "y": table["y"].to_numpy(float) / px})
+    for c in ("mass", "size", "ecc", "signal"):
+        if c in table:
+            out[c] = table[c].to_numpy()
+    return out

@@ -211,8 +211,8 @@ def track_movie(movie, out=None, pixel_size: float | None = None, frame_interval
     """
     from .calibration import Calibration, check_pixel_size, load_calibration
     from .io import open_movie
-    from .link import filter_short, link
-    from .table import UNITS, make_table, write_table
+    from .link import filter_short, link, to_trajectories
+    from .table import UNITS, write_table
 
     t0 = time.perf_counter()
     with open_movie(movie, pixel_size=pixel_size, frame_interval=frame_interval) as mv:
@@ -251,32 +251,20 @@ def track_movie(movie, out=None, pixel_size: float | None = None, frame_interval
     if len(linked) == 0:
         raise UserError(f"no trajectory of {min_length} or more frames in {source}",
                         "lower --min-length, raise --memory or give a larger --search-range")
-    # renumber particles 0..n-1 by first appearance, ties by position (trackpy's own ids depend on
-    # set iteration order, so they can differ between runs on identical input)
-    firsts = linked.sort_values(["frame", "y_px", "x_px"], kind="stable").drop_duplicates("particle")
-    order = firsts.sort_values(["frame", "y_px", "x_px"], kind="stable")["particle"].to_numpy()
-    linked["particle"] = linked["particle"].map({p: i for i, p in enumerate(order)}).astype(np.int64)
     meta = {
-        "pixel_size": px, "frame_interval": dt, "source": str(source), "n_frames": n_frames,
+        "source": str(source), "n_frames": n_frames,
         "frame_shape": list(shape), "kind": "measured", "tracker": "ptrack", **info, "link": link_info,
         "units": {**UNITS, "size": "px", "mass": "ADU", "signal": "ADU", "ecc": "1"},
     }
-    opt = {"x_px": linked["x_px"], "y_px": linked["y_px"], "mass": linked["mass"]}
-    if cal is None:
-        opt.update(size=linked["size"], ecc=linked["ecc"], signal=linked["signal"],
-                   sigma_x=linked["sigma_x_px"] * px, sigma_y=linked["sigma_y_px"] * px)
-        z = None
-    else:
-        opt.update(cm=linked["cm"])
-        if "chi2" in linked:  # light the fitted templates leave unexplained (noise units): high = overlap compromise
-            opt.update(chi2=linked["chi2"])
-        if "edge" in linked:  # image cut by the frame edge: z from its visible part only
-            opt.update(edge=linked["edge"].astype(bool))
-        z = linked["z"].to_numpy()
+    if cal is not None:
         meta.update(calibration=str(cal.source), calib_depth=cal.depth, calib_step=cal.step,
                     calib_template_px=cal.size, cm_min=float(cm_min))
-    table = make_table(linked["frame"], linked["frame"].to_numpy() * dt, linked["particle"],
-                       linked["x_px"].to_numpy() * px, linked["y_px"].to_numpy() * px, z, meta=meta, **opt)
+    keep = ["frame", "particle", "x_px", "y_px", "mass"]
+    keep += ["size", "ecc", "signal", "sigma_x_px", "sigma_y_px"] if cal is None else \
+        ["z", "cm"] + [c for c in ("chi2", "edge") if c in linked]
+    # the public step from linked features (px) to the SI table; it renumbers the particles 0..n-1 by
+    # first appearance (trackpy's own ids depend on set iteration order)
+    table = to_trajectories(linked[keep], px, dt, meta=meta)
     stages = dict(info.get("stage_times_s", {}))
     stages["link"] = round(t_link, 4)
     stages["table"] = round(time.perf_counter() - t_table, 4)

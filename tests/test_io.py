@@ -146,3 +146,31 @@ def test_cli_truncated_and_dark_movies_exit_2_without_output(tmp_path, stack):
         assert len(r.stderr.strip().splitlines()) == 1
         assert not out.exists()
         assert not list(tmp_path.glob(f".{out.name}*"))
+
+
+def test_trackpy_table_round_trip_and_features_to_si_table():
+    """trackpy's x, y are pixels: from_trackpy scales them to metres (not read as metres), to_trackpy
+    goes back; to_trajectories is the public features (px) -> SI table step of ptrack track."""
+    import pandas as pd
+
+    from ptrack.link import from_trackpy, to_trackpy, to_trajectories
+    from ptrack.table import metadata
+
+    rng = np.random.default_rng(0)
+    f = pd.DataFrame({"frame": np.tile(np.arange(20), 3), "particle": np.repeat([7, 3, 9], 20),
+                      "x": rng.uniform(0, 100, 60), "y": rng.uniform(0, 100, 60), "mass": rng.uniform(1, 2, 60)})
+    t = from_trackpy(f, 1.5e-7, 0.05)
+    assert np.allclose(t["x"], t["x_px"] * 1.5e-7) and t["x"].max() < 2e-5
+    assert np.allclose(t["t"], t["frame"] * 0.05) and sorted(t["particle"].unique()) == [0, 1, 2]
+    assert metadata(t)["pixel_size"] == 1.5e-7
+    back = to_trackpy(t)
+    a = back.sort_values(["frame", "mass"]).reset_index(drop=True)
+    b = f.sort_values(["frame", "mass"]).reset_index(drop=True)
+    assert len(a) == 60 and np.allclose(a[["x", "y"]], b[["x", "y"]], rtol=1e-12)
+    feats = f.rename(columns={"x": "x_px", "y": "y_px"}).assign(sigma_x_px=0.1, sigma_y_px=0.2)
+    tt = to_trajectories(feats, 2e-7, 0.1)
+    assert np.allclose(tt["sigma_y"], 0.2 * 2e-7) and np.isnan(tt["z"]).all()
+    with pytest.raises(UserError):
+        to_trajectories(feats.drop(columns="particle"), 2e-7, 0.1)
+    with pytest.raises(UserError):
+        from_trackpy(f, -1.0, 0.1)

@@ -208,11 +208,12 @@ def _maxima_snr(snr, thr, edge):
 
 @nb.njit(cache=True)
 def _suppress(rows, cols, scale, order, radius_factor, min_radius):
-    # greedy non-maximum suppression in order of decreasing SNR. A weaker candidate at a finer scale
-    # within radius_factor x the stronger one's scale is a piece of its image (a ring's necklace); one of
-    # the same or a larger scale is a separate particle unless closer than half the FWHM (1.18 scale),
-    # where two spots merge into one maximum anyway (the local-maximum window of the single-size
-    # detector: two spots 3-4 px apart must both be kept, or D is biased low at close approach)
+    # greedy non-maximum suppression in order of decreasing SNR. Candidates of clearly different scales
+    # (more than 1.5x, i.e. beyond the next rung) within radius_factor x the larger scale are one image:
+    # a finer one is a piece of a coarse image (a ring's necklace), a coarser one the blend of finer
+    # images (two spots seen as one large blob). Of similar scales, both are kept unless closer than half
+    # the FWHM (1.18 scale), where two spots merge into one maximum anyway (two spots 3-4 px apart must
+    # both be kept, or D is biased low at close approach)
     n = rows.shape[0]
     keep = np.zeros(n, np.bool_)
     kept = np.empty(n, np.int64)
@@ -222,10 +223,12 @@ def _suppress(rows, cols, scale, order, radius_factor, min_radius):
         ok = True
         for b in range(nk):
             j = kept[b]
-            if scale[i] < scale[j]:
-                rad = max(radius_factor * scale[j], min_radius)
+            lo = min(scale[i], scale[j])
+            hi = max(scale[i], scale[j])
+            if hi > 1.5 * lo:
+                rad = max(radius_factor * hi, min_radius)
             else:
-                rad = max(1.18 * scale[j], min_radius)
+                rad = max(1.18 * hi, min_radius)
             dr = rows[i] - rows[j]
             dc = cols[i] - cols[j]
             if dr * dr + dc * dc < rad * rad:
@@ -278,8 +281,8 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
     edge : int
         Ignore maxima closer than this to the border (px).
     suppress : float
-        A weaker candidate of a finer scale within ``suppress`` x the
-        stronger one's scale is part of the same image.
+        A weaker candidate of a clearly different scale (> 1.5x) within
+        ``suppress`` x the larger scale is part of the same image.
     offset : float
         Camera baseline (counts): the skewness correction of the threshold
         needs the background above it.

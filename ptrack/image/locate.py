@@ -306,6 +306,9 @@ def _locate_multiscale(frame, snr=None, gain=1.0, offset=0.0, read_noise=0.0, br
     bgmap, nzmap = noise_maps(f32, tile=32, step=2)
     sub = (f32 - bgmap) if polarity > 0 else (bgmap - f32)
     noise = float(np.median(nzmap))
+    if polarity > 0 and median and n:
+        # isolated hot pixels would pull the likelihood fit of the raw counts: replaced by their 3x3 median
+        raw = repair_hot_pixels(raw, sub, median3(sub))
     ring = np.zeros(n, np.bool_)
     if n:
         _ring_like(np.ascontiguousarray(sub, np.float32), rows, cols, scale.astype(np.float64), noise, ring)
