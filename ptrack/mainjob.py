@@ -86,22 +86,23 @@ def job_2d(out: Path) -> dict:
     pr = res["D_pairs"] or {"D": {a: float("nan") for a in ("x", "y", "xy")},
                             "D_err": {a: float("nan") for a in ("x", "y", "xy")}, "link_ambiguity": float("nan")}
     print("\n== 2D diffusion movie (data/synthetic/diffusion2d: 130 frames, 10 fps, R = 250 nm in water)")
-    print(f"   tracks: {res['n_tracks']}   D in µm²/s (+- standard error); field-of-view corrected;"
+    print(f"   tracks: {res['n_tracks']}   D in µm²/s (± standard error); field-of-view corrected;"
           f" link ambiguity {pr['link_ambiguity']:.3f}")
     print(f"   {'axis':<5}{'from tracks':>18}{'linking-free':>18}{'true tracks':>18}{'rendered D':>12}"
           f"{'Stokes-Einstein':>17}")
     for a in ("x", "y", "xy"):
-        print(f"   {a:<5}{res['D_tracks'][a] * UM2:>10.4f} +- {res['D_tracks_err'][a] * UM2:.4f}"
-              f"{pr['D'][a] * UM2:>10.4f} +- {pr['D_err'][a] * UM2:.4f}"
-              f"{ref.D[a] * UM2:>10.4f} +- {ref.D_err[a] * UM2:.4f}{p['D_true'] * UM2:>12.4f}{d_se * UM2:>17.4f}")
+        print(f"   {a:<5}{res['D_tracks'][a] * UM2:>10.4f} ± {res['D_tracks_err'][a] * UM2:.4f}"
+              f"{pr['D'][a] * UM2:>10.4f} ± {pr['D_err'][a] * UM2:.4f}"
+              f"{ref.D[a] * UM2:>10.4f} ± {ref.D_err[a] * UM2:.4f}{p['D_true'] * UM2:>12.4f}{d_se * UM2:>17.4f}")
     err_true = res["D"]["xy"] / p["D_true"] - 1
     err_tracks = res["D"]["xy"] / ref.D["xy"] - 1
-    print(f"   reported D_xy ({res['D_method']}) = {res['D']['xy'] * UM2:.4f} +- {res['D_err']['xy'] * UM2:.4f} µm²/s:"
+    print(f"   reported D_xy ({res['D_method']}) = {res['D']['xy'] * UM2:.4f} ± {res['D_err']['xy'] * UM2:.4f} µm²/s:"
           f" {100 * err_true:+.2f} % from the rendered D, {100 * err_tracks:+.2f} % from the true tracks"
           f" (standard error {100 * res['D_err']['xy'] / res['D']['xy']:.1f} %)")
     print("   verdict: " + verdict(res["D"]["xy"], ref.D["xy"], math.hypot(res["D_err"]["xy"], ref.D_err["xy"]),
-                                   f"reported D_xy against the true tracks ({res['n_tracks']} tracks found for "
-                                   f"{truth['particle'].nunique()} true particles in view)"))
+                                   f"reported D_xy against the true tracks ({res['n_tracks']} tracks of "
+                                   f"{truth['particle'].nunique()} true particles: one leaving and re-entering the "
+                                   "view starts a new track)"))
     return {"D": res["D"], "D_err": res["D_err"], "D_method": res["D_method"], "D_tracks": res["D_tracks"],
             "D_pairs": res["D_pairs"], "D_true": p["D_true"], "D_truth_tracks": ref.D,
             "D_stokes_einstein": d_se, "n_tracks": res["n_tracks"], "rel_err_vs_true": err_true,
@@ -138,7 +139,7 @@ def job_3d(out: Path) -> dict:
     # the true tracks through the same estimator: in z the particles are confined between walls
     # 5 um apart, which lowers the frame-to-frame MSD below 2 D dt
     ref = estimate_diffusion(truth, axes=("x", "y", "z"), estimator="cve", motion_blur=0.0, field_of_view="auto")
-    print("   D (µm²/s): " + "  ".join(f"{a} {res.D[a] * UM2:.3f} +- {res.D_err[a] * UM2:.3f}" for a in ("x", "y", "z"))
+    print("   D (µm²/s): " + "  ".join(f"{a} {res.D[a] * UM2:.3f} ± {res.D_err[a] * UM2:.3f}" for a in ("x", "y", "z"))
           + f"   rendered D {p['D_true'] * UM2:.3f}")
     print("   true tracks: " + "  ".join(f"{a} {ref.D[a] * UM2:.3f}" for a in ("x", "y", "z"))
           + "   (z confined between walls 5 µm apart: D_z of the true tracks is the reference, not the free D)")
@@ -195,7 +196,7 @@ def job_brightfield(out: Path) -> dict:
     print(f"   {summary['n_localisations']} localisations in {summary['n_frames']} frames; {summary['n_tracks']} tracks"
           f" found for {n_true} true particles (a track broken by a missed frame counts twice);"
           f" recall {recall:.3f}; z RMSE {z_rmse * 1e9:.0f} nm over {p['start_heights'][1] * 1e6:.0f} µm of travel")
-    print(f"   drift towards the electrode before contact: v_z = {vz * 1e6:.2f} +- {vz_err * 1e6:.2f} µm/s"
+    print(f"   drift towards the electrode before contact: v_z = {vz * 1e6:.2f} ± {vz_err * 1e6:.2f} µm/s"
           f" ({len(vel)} tracks); rendered {p['vz_drift'] * 1e6:.2f} µm/s (Henry {-p['v_henry'] * 1e6:.2f}"
           f" + settling); {(vz / p['vz_drift'] - 1) * 100:+.1f} %, {abs(vz - p['vz_drift']) / vz_err:.1f} SE")
     print(f"   {deposited} of the {n_true} true particles deposited by the last frame")
