@@ -39,6 +39,8 @@ from numba import njit
 
 from sim.forces.contact import (CONTACT_NONE, D_MAX_DAMP, D_MAX_OVERLAP, D_MAX_OVERLAP_I, D_MAX_W2, D_N_CONTACTS, D_SIZE,
                                 pair_forces, pair_forces_parallel, wall_forces)
+from sim.forces.body import magnetic_force
+from sim.forces.brownian import brownian_sigma
 from sim.forces.drag import drag_force_scalar
 from sim.forces.nearfield import LAW_WIDTH, law_row, law_table, wall_law_forces
 from sim.neighbors import _build, carry_history, needs_rebuild, wrap_positions
@@ -62,10 +64,11 @@ STATUS_TEXT = {
 }
 
 DRAG_NONE, DRAG_STOKES, DRAG_SEED = 0, 1, 2
-VERLET, PHI_SCHEME = 0, 1  # integrator codes of _run_chunk
+VERLET, PHI_SCHEME, OVERDAMPED = 0, 1, 2  # integrator codes of _run_chunk
 
-# the ``guards`` array of the kernels: blow-up limits and the fixed-point tolerance
-G_MAX_OVERLAP, G_V_MAX, G_HAS_BOTTOM, G_TOL = 0, 1, 2, 3
+# the ``guards`` array of the kernels: blow-up limits, the fixed-point tolerance and the overdamped
+# stepper's options (sticking substrate, largest drift step in m, time at which to stop in s)
+G_MAX_OVERLAP, G_V_MAX, G_HAS_BOTTOM, G_TOL, G_STICK, G_MAX_STEP, G_T_STOP = 0, 1, 2, 3, 4, 5, 6
 # the ``chunk_peaks`` array: largest values over a run() call
 P_OVERLAP, P_W2, P_DAMP = 0, 1, 2
 
@@ -99,7 +102,9 @@ def counter_normal(seed, step, index):
 def _external(pos, vel, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt, force):
     """Constant force + drag + magnetic Lorentz + Brownian, added to ``force``.
 
-    ``extp = [vf_x, vf_y, vf_z, rho_f, mu, kT, B_x, B_y, B_z]``.
+    ``extp = [vf_x, vf_y, vf_z, rho_f, mu, kT, B_x, B_y, B_z]``. (The overdamped stepper passes
+    drag_mode = DRAG_NONE and kT = 0: its mobility and displacement noise carry drag and Brownian
+    motion.)
     """
     n = pos.shape[0]
     magnetic = extp[6] != 0.0 or extp[7] != 0.0 or extp[8] != 0.0
@@ -120,15 +125,12 @@ def _external(pos, vel, radius, mass, charge, gamma, fconst, drag_mode, extp, se
             fy += dy
             fz += dz
         if magnetic:
-            q = charge[i]
-            vx = vel[i, 0]
-            vy = vel[i, 1]
-            vz = vel[i, 2]
-            fx += q * (vy * extp[8] - vz * extp[7])
-            fy += q * (vz * extp[6] - vx * extp[8])
-            fz += q * (vx * extp[7] - vy * extp[6])
+            mx, my, mz = magnetic_force(charge[i], vel[i, 0], vel[i, 1], vel[i, 2], extp[6], extp[7], extp[8])
+            fx += mx
+            fy += my
+            fz += mz
         if kT > 0.0:
-            s = math.sqrt(2.0 * gamma[i] * kT / dt)
+            s = brownian_sigma(gamma[i], kT, dt)
             fx += s * counter_normal(seed, step, 3 * i)
             fy += s * counter_normal(seed, step, 3 * i + 1)
             fz += s * counter_normal(seed, step, 3 * i + 2)
@@ -220,20 +222,35 @@ def rebuild_neighbors(pos, image, radius, cutoff, skin, lo, length, periodic, st
 
 @njit(cache=True)
 def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
-               pos, image, vel, omega, force, torque, radius, mass, inertia, charge, gamma, fconst,
+               pos, image, vel, omega, force, torque, radius, mass, inertia, charge, gamma, fconst, frozen,
                drag_mode, extp, seed, model, cp, cpw, pair_laws, wall_laws, rotation, walls, whist,
                start, nbj, shift, hist, ref_pos, cutoff, skin, lo, length, periodic, guards, diag,
                chunk_peaks, force_rebuild_at_end, nthreads):
     """Advance up to ``nsteps`` steps.  Returns
-    ``(status, steps_done, particle, start, nbj, shift, hist, ref_pos, n_builds)``.
+    ``(status, steps_done, particle, start, nbj, shift, hist, ref_pos, n_builds, t_done)``.
 
-    integrator 0: velocity Verlet (kick-drift-kick; velocity-dependent forces
-    use the half-step velocity, as in LAMMPS).  integrator 1: the seed's
+    VERLET: velocity Verlet (kick-drift-kick; velocity-dependent forces
+    use the half-step velocity, as in LAMMPS).  PHI_SCHEME: the seed's
     eq. 3.28-3.29 phi-scheme with ``n_iter`` fixed-point iterations on the
-    end-of-step forces (phi = 0: forward Euler).
+    end-of-step forces (phi = 0: forward Euler).  OVERDAMPED: Brownian
+    dynamics with the pair, wall and constant forces (Euler-Maruyama,
+    x' = x + F dt / gamma + sqrt(2 kB T dt / gamma) N(0, 1), the counter-based
+    numbers of the Brownian force; ``vel`` holds the drift F / gamma), the
+    step shortened so that no drift step exceeds ``guards[G_MAX_STEP]`` (m,
+    0 = off); with ``guards[G_STICK]`` a particle reaching the substrate
+    sticks there (``frozen`` = 1, no longer moved), else its centre is
+    reflected at z = R; the chunk ends early once the time reaches
+    ``guards[G_T_STOP]``.
     """
     n = pos.shape[0]
     nbuild = 0
+    t_done = 0.0
+    bd_kT = extp[5]
+    if integrator == OVERDAMPED:
+        # forces without drag and Brownian force (see _external)
+        extp = extp.copy()
+        extp[5] = 0.0
+        drag_mode = DRAG_NONE
     hdt = 0.5 * dt
     # per-thread force buffers of the threaded pair kernel (allocated once per chunk)
     if nthreads > 1:
@@ -272,6 +289,52 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
                     model, cp, cpw, pair_laws, wall_laws, rotation, walls, whist, start, nbj, shift, hist,
                     force, torque, diag, fbuf, tbuf, dbuf)
             _half_kick(vel, omega, force, torque, mass, inertia, hdt, rotation)
+            t_done += dt
+        elif integrator == OVERDAMPED:
+            dts = dt
+            if guards[G_MAX_STEP] > 0.0:
+                for i in range(n):
+                    if frozen[i] == 0.0:
+                        f2 = force[i, 0] * force[i, 0] + force[i, 1] * force[i, 1] + force[i, 2] * force[i, 2]
+                        if f2 > 0.0:
+                            lim = guards[G_MAX_STEP] * gamma[i] / math.sqrt(f2)
+                            if lim < dts:
+                                dts = lim
+            stick = guards[G_STICK] != 0.0
+            bottom = guards[G_HAS_BOTTOM] != 0.0
+            for i in range(n):
+                if frozen[i] != 0.0:
+                    continue
+                sd = math.sqrt(2.0 * bd_kT * dts / gamma[i]) if bd_kT > 0.0 else 0.0
+                for c in range(3):
+                    v = force[i, c] / gamma[i]
+                    vel[i, c] = v
+                    pos[i, c] += v * dts
+                    if sd > 0.0:
+                        pos[i, c] += sd * counter_normal(seed, step, 3 * i + c)
+                if bottom and pos[i, 2] <= radius[i]:
+                    if stick:
+                        pos[i, 2] = radius[i]
+                        frozen[i] = 1.0
+                        vel[i, 0] = 0.0
+                        vel[i, 1] = 0.0
+                        vel[i, 2] = 0.0
+                    else:
+                        # hard, frictionless substrate: reflecting boundary for the centre at z = R
+                        pos[i, 2] = 2.0 * radius[i] - pos[i, 2]
+            t_done += dts
+            if needs_rebuild(pos, ref_pos, skin):
+                start, nbj, shift, hist = rebuild_neighbors(pos, image, radius, cutoff, skin, lo, length, periodic,
+                                                            start, nbj, hist, ref_pos)
+                nbuild += 1
+            _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt,
+                    model, cp, cpw, pair_laws, wall_laws, rotation, walls, whist, start, nbj, shift, hist,
+                    force, torque, diag, fbuf, tbuf, dbuf)
+            for i in range(n):
+                if frozen[i] != 0.0:
+                    force[i, 0] = 0.0
+                    force[i, 1] = 0.0
+                    force[i, 2] = 0.0
         else:
             # phi-scheme: v1 = v0 + dt/m (phi F1 + (1-phi) F0); x1 = x0 + dt (phi v1 + (1-phi) v0)
             x0[:, :] = pos
@@ -326,16 +389,19 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
         if diag[D_MAX_DAMP] > chunk_peaks[P_DAMP]:
             chunk_peaks[P_DAMP] = diag[D_MAX_DAMP]
         if diag[D_MAX_OVERLAP] > guards[G_MAX_OVERLAP]:
-            return BLOWUP_OVERLAP, s + 1, int(diag[D_MAX_OVERLAP_I]), start, nbj, shift, hist, ref_pos, nbuild
+            return BLOWUP_OVERLAP, s + 1, int(diag[D_MAX_OVERLAP_I]), start, nbj, shift, hist, ref_pos, nbuild, t_done
         st, p = _check(pos, vel, radius, guards)
         if st != OK:
-            return st, s + 1, p, start, nbj, shift, hist, ref_pos, nbuild
+            return st, s + 1, p, start, nbj, shift, hist, ref_pos, nbuild, t_done
+        if guards[G_T_STOP] > 0.0 and t_done >= guards[G_T_STOP]:
+            # the overdamped stepper's variable steps reached the requested time
+            return OK, s + 1, -1, start, nbj, shift, hist, ref_pos, nbuild, t_done
     if force_rebuild_at_end:
         # deterministic restart point: list rebuilt from these exact positions
         start, nbj, shift, hist = rebuild_neighbors(pos, image, radius, cutoff, skin, lo, length, periodic,
                                                     start, nbj, hist, ref_pos)
         nbuild += 1
-    return OK, nsteps, -1, start, nbj, shift, hist, ref_pos, nbuild
+    return OK, nsteps, -1, start, nbj, shift, hist, ref_pos, nbuild, t_done
 
 
 # --------------------------------------------------------------------------- system
@@ -395,7 +461,7 @@ class DEMSystem:
                  nfp=None, pair_laws=None, wall_laws=None, rotation=True, walls=None, box_lo=(0, 0, 0), box_length=(1, 1, 1),
                  periodic=(0, 0, 0), fconst=None, drag_mode=DRAG_NONE, gamma=None, extp=None, dt=1e-6,
                  skin=None, cutoff=0.0, seed=0, max_overlap=0.5, v_max=np.inf, integrator=0, phi=0.0,
-                 n_iter=3, threads=1, tol=1e-10):
+                 n_iter=3, threads=1, tol=1e-10, substrate=None, max_step=0.0):
         f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
         self.pos = f64(np.array(pos, dtype=np.float64, copy=True))
         n = len(self.pos)
@@ -429,7 +495,13 @@ class DEMSystem:
         self.cutoff = float(cutoff)
         self.skin = float(0.2 * self.radius.min() if skin is None else skin)
         self.seed = int(seed)
-        self.guards = f64([max_overlap, v_max, 1.0 if self._has_bottom() else 0.0, tol])  # G_* indices
+        if substrate not in (None, "stick", "reflect"):
+            raise ValueError("substrate must be None, 'stick' or 'reflect'")
+        bottom = self._has_bottom() or substrate is not None
+        # G_* indices
+        self.guards = f64([max_overlap, v_max, 1.0 if bottom else 0.0, tol, 1.0 if substrate == "stick" else 0.0,
+                           max_step, 0.0])
+        self.frozen = np.zeros(n)  # 1: stuck on the substrate (overdamped stepper), no longer moved
         self.integrator = int(integrator)
         self.phi = float(phi)
         self.n_iter = int(n_iter)
@@ -470,8 +542,12 @@ class DEMSystem:
 
     def compute_forces(self):
         """Evaluate forces and torques at the current state (updates contact history)."""
+        drag_mode, extp = self.drag_mode, self.extp
+        if self.integrator == OVERDAMPED:  # as in _run_chunk: no drag or Brownian force
+            drag_mode, extp = DRAG_NONE, self.extp.copy()
+            extp[5] = 0.0
         _forces(self.pos, self.vel, self.omega, self.radius, self.mass, self.charge, self.gamma, self.fconst,
-                self.drag_mode, self.extp, self.seed, self.step, self.dt, self.model, self.cp, self.cpw,
+                drag_mode, extp, self.seed, self.step, self.dt, self.model, self.cp, self.cpw,
                 self.pair_laws, self.wall_laws, self.rotation, self.walls, self.whist, self.start, self.nbj,
                 self.shift, self.hist, self.force, self.torque, self.diag, *self._buffers())
 
@@ -486,7 +562,7 @@ class DEMSystem:
         """Unwrapped positions (m), continuous across periodic boundaries."""
         return self.pos + self.image * self.length[None, :]
 
-    def run(self, nsteps, rebuild_at_end=False, poll=None, chunker=None):
+    def run(self, nsteps, rebuild_at_end=False, poll=None, chunker=None, until=None):
         """Advance ``nsteps`` steps; returns the status code (0 = fine).
 
         On a blow-up the state is left at the failing step and
@@ -498,31 +574,42 @@ class DEMSystem:
         between them (it may raise, e.g. on a signal); the result is
         bit-identical to one call (the kernel carries no per-call state but its
         buffers, and the end-of-run rebuild is done in the last call only).
+
+        ``until`` (s): stop at the first step that reaches this time (for the
+        overdamped stepper, whose steps vary in length).
         """
         self.chunk_peaks = np.zeros(3)
         left = int(nsteps)
         status = OK
         while left > 0:
+            if until is not None:
+                if self.t >= until:
+                    break
+                self.guards[G_T_STOP] = until - self.t
             k = left if chunker is None else min(left, chunker.size)
             if chunker is not None:
                 chunker.start()
             out = _run_chunk(k, self.dt, self.step, self.integrator, self.phi, self.n_iter,
                              self.pos, self.image, self.vel, self.omega, self.force, self.torque, self.radius,
-                             self.mass, self.inertia, self.charge, self.gamma, self.fconst, self.drag_mode,
+                             self.mass, self.inertia, self.charge, self.gamma, self.fconst, self.frozen,
+                             self.drag_mode,
                              self.extp, self.seed, self.model, self.cp, self.cpw, self.pair_laws,
                              self.wall_laws, self.rotation, self.walls, self.whist, self.start, self.nbj,
                              self.shift, self.hist, self.ref_pos, self.cutoff, self.skin, self.lo, self.length,
                              self.periodic, self.guards, self.diag, self.chunk_peaks,
                              bool(rebuild_at_end) and k == left, int(self.threads))
-            status, done, part, self.start, self.nbj, self.shift, self.hist, self.ref_pos, nb = out
+            status, done, part, self.start, self.nbj, self.shift, self.hist, self.ref_pos, nb, t_done = out
             if chunker is not None:
                 chunker.done(done * self.n)
             self.step += done
-            self.t += done * self.dt
+            # fixed steps: t from the step count as before (same rounding); the overdamped stepper's
+            # steps vary in length
+            self.t += t_done if self.integrator == OVERDAMPED else done * self.dt
             self.n_builds += nb
             self.status = status
             self.fail_particle = part
             left -= done
+            self.guards[G_T_STOP] = 0.0
             if status != OK:
                 return status
             if poll is not None and left > 0:
@@ -531,7 +618,7 @@ class DEMSystem:
 
     # ------------------------------------------------------------------ state I/O
     STATE_ARRAYS = ("pos", "image", "vel", "omega", "force", "torque", "whist", "fconst", "radius", "mass",
-                    "charge", "gamma")
+                    "charge", "gamma", "frozen")
 
     def get_state(self):
         """Neighbour-list-independent snapshot (dict of arrays/scalars).
@@ -553,6 +640,9 @@ class DEMSystem:
     def set_state(self, d):
         """Restore a snapshot from :meth:`get_state` (rebuilds the neighbour list)."""
         for k in self.STATE_ARRAYS:
+            if k == "frozen" and k not in d:  # checkpoints written before the overdamped stepper
+                self.frozen = np.zeros(len(d["pos"]))
+                continue
             setattr(self, k, np.ascontiguousarray(d[k], dtype=np.float64))
         self.step = int(d["step"])
         self.t = float(d["t"])

@@ -52,6 +52,8 @@ import numpy as np
 from numba import njit
 
 from ptrack.errors import UserError
+from sim.forces.body import magnetic_force
+from sim.forces.brownian import brownian_sigma
 from sim.forces.drag import drag_factor, max_reynolds
 from sim.scene import PERIODIC, WALL
 
@@ -287,7 +289,7 @@ def trapezoidal_kernel(pos, vel, radius, mass, gamma, charge, fconst, vf, B, rho
         m = mass[i]
         g0 = gamma[i]
         q = charge[i]
-        sb = math.sqrt(2.0 * g0 * kT / dt) if noise else 0.0
+        sb = brownian_sigma(g0, kT, dt) if noise else 0.0
         for f in range(nframes):
             for s in range(steps):
                 for k in range(3):
@@ -298,9 +300,10 @@ def trapezoidal_kernel(pos, vel, radius, mass, gamma, charge, fconst, vf, B, rho
                 uy = vf[1] - v0[1]
                 uz = vf[2] - v0[2]
                 gd = _drag_gamma(g0, stokes, radius[i], rho_f, mu, ux, uy, uz)
-                f0[0] = fconst[i, 0] + fb[0] + gd * ux + q * (v0[1] * B[2] - v0[2] * B[1])
-                f0[1] = fconst[i, 1] + fb[1] + gd * uy + q * (v0[2] * B[0] - v0[0] * B[2])
-                f0[2] = fconst[i, 2] + fb[2] + gd * uz + q * (v0[0] * B[1] - v0[1] * B[0])
+                mx, my, mz = magnetic_force(q, v0[0], v0[1], v0[2], B[0], B[1], B[2])
+                f0[0] = fconst[i, 0] + fb[0] + gd * ux + mx
+                f0[1] = fconst[i, 1] + fb[1] + gd * uy + my
+                f0[2] = fconst[i, 2] + fb[2] + gd * uz + mz
                 if phi == 0.0:
                     for k in range(3):
                         v1[k] = v0[k] + dt / m * f0[k]
@@ -311,9 +314,7 @@ def trapezoidal_kernel(pos, vel, radius, mass, gamma, charge, fconst, vf, B, rho
                     for it in range(max_iter):
                         g1 = _drag_gamma(g0, stokes, radius[i], rho_f, mu, vf[0] - v1[0], vf[1] - v1[1], vf[2] - v1[2])
                         c = phi * dt / m
-                        l0 = q * (v1[1] * B[2] - v1[2] * B[1])
-                        l1 = q * (v1[2] * B[0] - v1[0] * B[2])
-                        l2 = q * (v1[0] * B[1] - v1[1] * B[0])
+                        l0, l1, l2 = magnetic_force(q, v1[0], v1[1], v1[2], B[0], B[1], B[2])
                         # implicit in the linear drag term: v' (1 + c g1) = v0 + c (F_c + F_b + g1 v_f + q v x B) + (1 - phi) dt/m f0
                         vn[0] = (v0[0] + c * (fconst[i, 0] + fb[0] + g1 * vf[0] + l0) + (1.0 - phi) * dt / m * f0[0]) / (1.0 + c * g1)
                         vn[1] = (v0[1] + c * (fconst[i, 1] + fb[1] + g1 * vf[1] + l1) + (1.0 - phi) * dt / m * f0[1]) / (1.0 + c * g1)

@@ -27,6 +27,13 @@ def brownian_std(gamma, kT, dt) -> np.ndarray:
     return np.sqrt(2.0 * np.asarray(gamma, dtype=np.float64) * kT / dt)
 
 
+@njit(cache=True, inline="always")
+def brownian_sigma(gamma, kT, dt):
+    """Standard deviation (N) of one Brownian force component, sqrt(2 gamma kB T / dt): the one
+    implementation, used by every inertial integrator (gamma kg/s, kT J, dt s)."""
+    return math.sqrt(2.0 * gamma * kT / dt)
+
+
 @njit(cache=True)
 def add_brownian(gamma, kT, dt, out):
     """Add a Brownian force (variance 2 gamma kT / dt per component) to ``out`` (N, 3).
@@ -36,6 +43,6 @@ def add_brownian(gamma, kT, dt, out):
     if kT <= 0.0:
         return
     for i in range(out.shape[0]):
-        s = math.sqrt(2.0 * gamma[i] * kT / dt)
+        s = brownian_sigma(gamma[i], kT, dt)
         for k in range(3):
             out[i, k] += s * np.random.standard_normal()

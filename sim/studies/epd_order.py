@@ -22,10 +22,14 @@ makes its values 1.5x too high).  Each (Pe, a/lambda_D) case is an
 independent dask task.  Expected trend: order falls as Pe rises (particles
 have less time to find lattice sites before the next layer buries them).
 
-Time stepping: Euler-Maruyama with a step ``dt = min(dt0, 0.01 a gamma /
-F_max)`` chosen each step from the largest deterministic force, so that no
-particle moves more than 1 % of its radius by drift in one step (stiff
-close encounters are resolved); the Brownian increment uses the same dt.
+Time stepping: the engine's overdamped stepper (:class:`sim.dem.DEMSystem`
+with ``integrator=OVERDAMPED``: the same pair kernel, laws and counter-based
+random numbers as every other run), Euler-Maruyama with a step ``dt =
+min(dt0, 0.01 a gamma / F_max)`` chosen each step from the largest
+deterministic force, so that no particle moves more than 1 % of its radius by
+drift in one step (stiff close encounters are resolved); the Brownian
+increment uses the same dt. (Until this version the study had an integrator
+of its own with numba's global generator: same scheme, other random numbers.)
 """
 from __future__ import annotations
 
@@ -35,78 +39,15 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from numba import njit
 
 from ptrack.constants import BOLTZMANN, VACUUM_PERMITTIVITY
-from sim.dem import rebuild_neighbors
-from sim.forces.contact import CONTACT_HOOKE, D_SIZE, pair_forces
+from sim.dem import OK, OVERDAMPED, STATUS_TEXT, DEMSystem
+from sim.forces.contact import CONTACT_HOOKE
 from sim.forces.nearfield import NF_YUKAWA, law_row, law_table
-from sim.neighbors import _build, needs_rebuild, wrap_positions
 
 DEFAULTS = dict(radius=100e-9, temperature=293.0, viscosity=1e-3, eps_r=80.0, psi=0.05, n_particles=300,
                 side_radii=None, height_radii=None, volume_fraction=0.04, dt_reduced=2e-4, settle=1.0,
                 contact_stiffness_kT=5.0e3)
-
-
-@njit(cache=True, nogil=True)
-def _bd_deposit(pos, radius, a, gamma, kT, f_field, t_end, dt0, laws, cutoff, cp, length, skin, seed, max_steps,
-                stick):
-    n = pos.shape[0]
-    D = kT / gamma
-    np.random.seed(seed)
-    lo = np.zeros(3)
-    periodic = np.array([1, 1, 0], dtype=np.int64)
-    image = np.zeros((n, 3))
-    stuck = np.zeros(n, dtype=np.bool_)
-    vel = np.zeros((n, 3))
-    omega = np.zeros((n, 3))
-    mass = np.ones(n)
-    charge = np.zeros(n)
-    force = np.zeros((n, 3))
-    torque = np.zeros((n, 3))
-    diag = np.zeros(D_SIZE)
-    wrap_positions(pos, image, lo, length, periodic)
-    start, nbj, shift = _build(pos, radius, cutoff, skin, lo, length, periodic)
-    hist = np.zeros((nbj.shape[0], 3))
-    ref = pos.copy()
-    t = 0.0
-    steps = 0
-    while t < t_end and steps < max_steps:
-        if needs_rebuild(pos, ref, skin):
-            start, nbj, shift, hist = rebuild_neighbors(pos, image, radius, cutoff, skin, lo, length, periodic,
-                                                        start, nbj, hist, ref)
-        force[:, :] = 0.0
-        pair_forces(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist, force, torque,
-                    CONTACT_HOOKE, cp, laws, False, dt0, diag)
-        fmax = 0.0
-        for i in range(n):
-            if stuck[i]:
-                continue
-            force[i, 2] -= f_field
-            f2 = force[i, 0] ** 2 + force[i, 1] ** 2 + force[i, 2] ** 2
-            if f2 > fmax:
-                fmax = f2
-        fmax = math.sqrt(fmax)
-        dt = dt0
-        if fmax > 0.0 and 0.01 * a * gamma / fmax < dt:
-            dt = 0.01 * a * gamma / fmax
-        s = math.sqrt(2.0 * D * dt)
-        for i in range(n):
-            if stuck[i]:
-                continue
-            for c in range(3):
-                pos[i, c] += force[i, c] / gamma * dt + s * np.random.standard_normal()
-            if pos[i, 2] <= radius[i]:
-                if stick:
-                    pos[i, 2] = radius[i]
-                    stuck[i] = True
-                else:
-                    # hard, frictionless substrate: reflecting boundary for the centre at z = R
-                    pos[i, 2] = 2.0 * radius[i] - pos[i, 2]
-        t += dt
-        steps += 1
-    wrap_positions(pos, image, lo, length, periodic)
-    return stuck, t, steps
 
 
 def run_case(case: dict) -> dict:
@@ -144,9 +85,23 @@ def run_case(case: dict) -> dict:
     t_end = (height / v) * (1.0 + case["settle"]) + 20 * a * a / D / max(pe, 1.0)
     dt0 = case["dt_reduced"] * a * a / D
     pos = np.ascontiguousarray(pos)
-    stuck, t, steps = _bd_deposit(pos, np.ascontiguousarray(rad), a, gamma, kT, f_field, t_end, dt0, laws, cut,
-                                  cp, np.array([side, side, 10 * height]), 0.3 * a, int(case["seed"]), 20_000_000,
-                                  case.get("substrate", "stick") == "stick")
+    # overdamped Brownian dynamics with the pair forces on the engine (sim.dem, OVERDAMPED): drift
+    # steps of at most 0.01 a, a sticking (or reflecting) substrate, counter-based random numbers
+    system = DEMSystem(pos, np.zeros_like(pos), np.ascontiguousarray(rad), np.full(n, 1.0), None,
+                       model=CONTACT_HOOKE, cp=cp, pair_laws=laws, rotation=False, walls=None,
+                       box_length=(side, side, 10 * height), periodic=(1, 1, 0),
+                       fconst=np.array([0.0, 0.0, -f_field]), gamma=np.full(n, gamma),
+                       extp=np.array([0.0, 0.0, 0.0, 0.0, 0.0, kT, 0.0, 0.0, 0.0]), dt=dt0, skin=0.3 * a,
+                       cutoff=cut, seed=int(case["seed"]), integrator=OVERDAMPED,
+                       substrate="stick" if case.get("substrate", "stick") == "stick" else "reflect",
+                       max_step=0.01 * a, max_overlap=np.inf)
+    max_steps = 20_000_000
+    while system.t < t_end and system.step < max_steps:
+        if system.run(min(200_000, max_steps - system.step), until=t_end) != OK:
+            raise RuntimeError(f"EPD-order case: {STATUS_TEXT[system.status]} at step {system.step}")
+    pos = system.pos
+    stuck = system.frozen != 0.0
+    t, steps = system.t, system.step
     stuck = stuck if case.get("substrate", "stick") == "stick" else pos[:, 2] < rad * 1.05
     # deposit: everything below the top surface that has arrived
     z = pos[:, 2]
