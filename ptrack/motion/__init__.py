@@ -29,19 +29,59 @@ Examples
 >>> abs(res.D["xy"] / 1e-12 - 1) < 4 * res.D_err["xy"] / 1e-12
 True
 """
-from .anomalous import powerlaw_flags
-from .bounds import crlb_diffusion, cve_variance
-from .cve import cve_from_positions, particle_diffusion
-from .diffusion import MIN_PARTICLES_BOOTSTRAP, DiffusionResult, estimate_diffusion
-from .msd import ensemble_msd, msd_from_positions, particle_msd
-from .ols import ols_from_positions, optimal_lags
-from .pairs import PairDiffusionResult, pair_diffusion
-from .stokes import stokes_einstein
-from .synthetic import brownian_field, brownian_tracks, drifting_tracks
-from .tracks import AXES, axis_components, check_motion_blur, frame_interval, parse_axes, resolve_motion_blur
-from .truth import match_truth
-from .velocity import ensemble_velocity, particle_velocity, trim_deposited, velocity_profile
-from .wall import height_from_ratio, hindered_D, parallel_ratio, perpendicular_ratio, unhindered_D
+# Submodules load on first use (PEP 562): `import ptrack.motion.wall` (the simulator's import) stays light.
+_WHERE = {
+    "powerlaw_flags": "anomalous",
+    "crlb_diffusion": "bounds",
+    "cve_variance": "bounds",
+    "cve_from_positions": "cve",
+    "particle_diffusion": "cve",
+    "MIN_PARTICLES_BOOTSTRAP": "diffusion",
+    "DiffusionResult": "diffusion",
+    "estimate_diffusion": "diffusion",
+    "ensemble_msd": "msd",
+    "msd_from_positions": "msd",
+    "particle_msd": "msd",
+    "ols_from_positions": "ols",
+    "optimal_lags": "ols",
+    "PairDiffusionResult": "pairs",
+    "pair_diffusion": "pairs",
+    "stokes_einstein": "stokes",
+    "brownian_field": "synthetic",
+    "brownian_tracks": "synthetic",
+    "drifting_tracks": "synthetic",
+    "AXES": "tracks",
+    "axis_components": "tracks",
+    "check_motion_blur": "tracks",
+    "frame_interval": "tracks",
+    "parse_axes": "tracks",
+    "resolve_motion_blur": "tracks",
+    "match_truth": "truth",
+    "ensemble_velocity": "velocity",
+    "particle_velocity": "velocity",
+    "trim_deposited": "velocity",
+    "velocity_profile": "velocity",
+    "height_from_ratio": "wall",
+    "hindered_D": "wall",
+    "parallel_ratio": "wall",
+    "perpendicular_ratio": "wall",
+    "unhindered_D": "wall",
+}
+
+
+def __getattr__(name):
+    if name in _WHERE:
+        import importlib
+
+        value = getattr(importlib.import_module(f".{_WHERE[name]}", __name__), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_WHERE))
+
 
 __all__ = ["AXES", "MIN_PARTICLES_BOOTSTRAP", "DiffusionResult", "PairDiffusionResult", "axis_components",
            "brownian_field", "brownian_tracks", "check_motion_blur", "crlb_diffusion", "cve_from_positions",
