@@ -25,6 +25,7 @@ import signal
 import subprocess
 import sys
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -399,7 +400,7 @@ _WRITERS = [  # (id, argv writing under {D}: the folder on the full / read-only 
     ("analyze", ["analyze", "{movie}", "--radius", "5e-7", "--viscosity", "1e-3", "--temperature", "293",
                  "--report", "{D}/rep"]),
     ("msd", ["msd", "{table}", "--json", "{D}/m.json", "--plot", "{D}/m.png"]),
-    ("velocity", ["velocity", "{table}", "--out", "{D}/v.csv", "--report", "{D}/vr"]),
+    ("velocity", ["velocity", "{table}", "--axes", "xy", "--out", "{D}/v.csv", "--report", "{D}/vr"]),
     ("wall-json", ["wall", "--radius", "1e-6", "--height", "2e-6", "--json", "{D}/w.json"]),
     ("wall-plot", ["wall", "--radius", "1e-6", "--height", "2e-6", "--plot", "{D}/w.png"]),
     ("render", ["render", "{table_ok}", "--out", "{D}/r", "--shape", "32", "32"]),
@@ -530,8 +531,17 @@ def run_inprocess(argv: list[str], cwd: Path, watch=()) -> Outcome:
     exc = None
     code = None
     os.chdir(cwd)
+
+    def show(message, category, filename, lineno, file=None, line=None):  # as Python prints them, not pytest
+        sys.stderr.write(warnings.formatwarning(message, category, filename, lineno, line))
+
     try:
-        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out), warnings.catch_warnings():
+            warnings.resetwarnings()  # Python's own defaults, not pytest's
+            warnings.simplefilter("default")
+            for cat in (DeprecationWarning, PendingDeprecationWarning, ImportWarning, ResourceWarning):
+                warnings.simplefilter("ignore", cat)
+            warnings.showwarning = show
             code = main(argv)
     except BaseException as e:  # noqa: BLE001 - a traceback is what the suite looks for
         exc = e
@@ -551,7 +561,7 @@ def _wait_for(folder: Path, pattern: str, limit: float, proc) -> None:
 
 
 def run_interrupted(argv: list[str], cwd: Path, wait_for: str = "*.part", after: float = 0.3,
-                    limit: float = 15.0, sig=signal.SIGINT) -> Outcome:
+                    limit: float = 30.0, sig=signal.SIGINT) -> Outcome:
     """Run the CLI in a subprocess, send ``sig`` ``after`` s after ``wait_for`` appears; it must end within ``limit`` s."""
     before = _snapshot(cwd)
     env = dict(os.environ, PYTHONUNBUFFERED="1")
@@ -693,7 +703,12 @@ class Suite:
                 kill_and_resume, self.corpus["dem"], work, [signal.SIGKILL, signal.SIGKILL])
 
     def kill_resume(self) -> dict:
-        return self._jobs["kill-resume"].result()
+        job = self._jobs.get("kill-resume")
+        if job is None:
+            work = self.root / "kill_resume"
+            work.mkdir(exist_ok=True)
+            return kill_and_resume(self.corpus["dem"], work, [signal.SIGKILL, signal.SIGKILL])
+        return job.result()
 
     def skip_reason(self, case: Case) -> str | None:
         if case.needs in ("full", "ro") and case.needs not in self.mounts:
@@ -728,9 +743,11 @@ class Suite:
 
 
 @pytest.fixture(scope="module")
-def suite(tmp_path_factory):
+def suite(tmp_path_factory, request):
     s = Suite(tmp_path_factory.mktemp("faults"))
-    s.start_background(CASES)
+    chosen = {getattr(item, "callspec", None) and item.callspec.id for item in request.session.items}
+    s.start_background([c for c in CASES if c.id in chosen],
+                       kill_resume=any("killed" in item.name for item in request.session.items))
     yield s
     s.close()
 
