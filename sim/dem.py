@@ -1,5 +1,7 @@
-"""The DEM engine: velocity-Verlet (or the seed's phi-scheme) time stepping of
-spheres with contact, bonding, friction, near-field and wall forces.
+"""The DEM engine: velocity-Verlet, the seed's phi-scheme or overdamped Brownian
+dynamics of spheres with contact, bonding, friction, non-contact (near-field,
+screened Coulomb, van der Waals) and wall forces, all through one force pass
+(:func:`_forces`).
 
 Layout (jax-md / HOOMD style: small pieces composed by the caller):
 
@@ -10,9 +12,11 @@ Layout (jax-md / HOOMD style: small pieces composed by the caller):
   step (the list is rebuilt - and only then allocated - when some particle
   moved more than half the skin).
 * :func:`run_dem` runs a :class:`sim.scene.Scene` that has pair interactions:
-  automatic and adaptive dt, streamed output through
-  :class:`ptrack.table.TrajectoryWriter` (unwrapped coordinates), atomic
-  checkpoints and ``resume``, blow-up detection with the last good state saved.
+  automatic and adaptive dt, the table streamed as segments committed with
+  atomic checkpoints (:class:`sim.driver.SegmentedTable`; unwrapped
+  coordinates), ``resume`` that survives any kill, signals handled between
+  kernel calls of bounded wall time, blow-up detection with the last good
+  state saved.
 
 External forces reuse the simulator core: the constant force ``q E + (m -
 rho_f V) g`` from :func:`sim.scene.constant_force`, the drag law of

@@ -59,6 +59,13 @@ Keys (SI units; every section optional, unknown keys rejected):
     mu_s = 0.4
     mu_d = 0.3
 
+    [vdw]                      # DLVO van der Waals attraction (sim/forces/vdw.py), pairs and walls
+    hamaker = 1.0e-20          # Hamaker constant A (J), particle-particle
+    wall_hamaker = 1.0e-20     # particle-wall (default: hamaker)
+    min_gap = 4.0e-10          # gap (m) below which the force is held constant
+    cutoff_gap = 2.0e-7        # surface-to-surface cut-off (m), default 2 radii
+    wavelength = 1.0e-7        # Gregory's retardation wavelength (m), 0 = non-retarded
+
 Which walls exist comes from the scene's ``[boundaries]``: the substrate at
 z = 0 (``bottom_wall``), solid side walls where ``x``/``y`` = "wall", a top
 plane where ``top = "wall"``.
