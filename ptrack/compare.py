@@ -30,7 +30,8 @@ quantity by quantity and axis by axis:
     Test: Wald z; effect: v_A - v_B (m/s).
 ``v_vs_height``
     (both 3D) drift against height (:func:`ptrack.velocity.velocity_profile`)
-    in common bins. Test: chi-square of the bin differences; effect: the
+    in common bins. Test: chi-square of the bin differences over the number of
+    bins, against F(bins, particles - 1); effect: the
     error-weighted mean difference (m/s).
 ``height``
     (both 3D) distribution of z. Test: Kolmogorov-Smirnov distance, p by
@@ -416,7 +417,7 @@ def _q_drift(A, B, comp, ea, eb, min_particles):
 def _q_v_height(A, B, comp, n_bins, n_boot, seed, min_particles, curves):
     from .velocity import velocity_profile
 
-    test = "chi-square of the per-bin differences of v(z), errors by particle bootstrap"
+    test = "chi-square of the per-bin differences of v(z) / bins against F(bins, particles - 1), errors by particle bootstrap"
     za, zb = A.df["z"].to_numpy(float), B.df["z"].to_numpy(float)
     za, zb = za[np.isfinite(za)], zb[np.isfinite(zb)]
     lo, hi = max(np.percentile(za, 1), np.percentile(zb, 1)), min(np.percentile(za, 99), np.percentile(zb, 99))
@@ -439,6 +440,10 @@ def _q_v_height(A, B, comp, n_bins, n_boot, seed, min_particles, curves):
     d = va[ok] - vb[ok]
     var = ea_[ok] ** 2 + eb_[ok] ** 2
     chi2 = float(np.sum(d ** 2 / var))
+    # each bin's variance is a bootstrap estimate from few particles: chi2 / k is referred to
+    # F(k, n - 1) (n: fewest particles in a used bin) rather than chi2(k), which was liberal (bench_compare)
+    n_min = int(min(pa["n_particles"].to_numpy()[ok].min(), pb["n_particles"].to_numpy()[ok].min()))
+    k_bins = int(ok.sum())
     w = 1 / var
     md = float(np.sum(w * d) / w.sum())
     se = float(1 / math.sqrt(w.sum()))
@@ -446,7 +451,7 @@ def _q_v_height(A, B, comp, n_bins, n_boot, seed, min_particles, curves):
                                      "b": vb.tolist(), "b_err": eb_.tolist(), "unit": "m/s"}
     return _record("v_vs_height", comp, test, {"n_bins": int(ok.sum())}, {"n_bins": int(ok.sum())},
                    "weighted mean v_A - v_B", md, (md - Z95 * se, md + Z95 * se),
-                   float(stats.chi2.sf(chi2, int(ok.sum()))), "m/s", statistic=chi2)
+                   float(stats.f.sf(chi2 / k_bins, k_bins, max(n_min - 1, 1))), "m/s", statistic=chi2)
 
 
 def _q_height(A, B, n_boot, n_perm, rng, min_particles, curves):
