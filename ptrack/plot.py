@@ -74,6 +74,9 @@ def plot_msd(result, path=None, title: str | None = None, ax=None, reported: dic
     else:
         msd, fit, errs = result, {}, {}
     t = msd["t"].to_numpy()
+    # about 40 log-spaced lags drawn: on a log axis every lag of a long curve would merge into a thick line
+    shown = np.zeros(len(t), bool)
+    shown[np.unique(np.round(np.geomspace(1, max(len(t), 1), 40)).astype(int) - 1)] = True
     for i, col in enumerate(c for c in msd.columns if c.startswith("msd_")):
         a = col[4:]
         y = msd[col].to_numpy()
@@ -86,19 +89,21 @@ def plot_msd(result, path=None, title: str | None = None, ax=None, reported: dic
             t0 = f.get("t_min") or t[0]
             t1 = f.get("t_max") or t[-1]
             infit = (t >= t0 * (1 - 1e-9)) & (t <= t1 * (1 + 1e-9))
+        good = good & (shown | infit)
         ax.errorbar(t[good], y[good] * UM2, yerr=np.nan_to_num(se[good]) * UM2, fmt="none", ecolor=color,
                     elinewidth=0.6, alpha=0.6)
-        ax.plot(t[good & ~infit], y[good & ~infit] * UM2, "o", ms=3, mfc="none", color=color,
-                label=f"MSD {a} (± SE)")
+        ax.plot(t[good & ~infit], y[good & ~infit] * UM2, "o", ms=3, mfc="none", color=color, mew=0.8,
+                label=f"MSD {a} (± SE); filled: lags fitted")
         if f is not None:
-            ax.plot(t[good & infit], y[good & infit] * UM2, "o", ms=5, color=color,
-                    label=f"MSD {a}: lags fitted")
+            ax.plot(t[good & infit], y[good & infit] * UM2, "o", ms=5, color=color)
             D = f["slope"] / (2 * f["n_dims"])
             tt = np.geomspace(t[0], t[-1], 100)
             model = f["offset"] + f["slope"] * tt
             err = errs.get(a, np.nan)
             lab = f"fit {a}: D = {D * UM2:.4g}" + (f" ± {err * UM2:.2g}" if np.isfinite(err) else "") + " µm²/s"
-            ax.plot(tt[model > 0], model[model > 0] * UM2, "-", color=color, lw=1, label=lab)
+            fitted = (tt <= t1 * (1 + 1e-9)) & (model > 0)
+            ax.plot(tt[fitted], model[fitted] * UM2, "-", color=color, lw=1.6, label=lab + " (solid: fitted lags)")
+            ax.plot(tt[~fitted & (model > 0)], model[~fitted & (model > 0)] * UM2, ":", color=color, lw=1)
             if reported and a in reported:
                 Dr, er, name = reported[a]
                 if abs(Dr / D - 1) > 1e-9:
