@@ -9,7 +9,8 @@ wall/gran, nve/sphere) from *the same initial positions* as ours (our frame 0
 written as a LAMMPS data file), so the physics cross-check compares the same
 start.
 
-Timing, for both codes alike: the wall time of the whole process
+Timing, for both codes alike (wall and CPU time of the processes; on a
+shared, loaded machine the CPU-time ratio is the steadier figure): the wall time of the whole process
 (``python -m ptrack simulate SCENE --out DIR --quiet`` / ``lmp -in ...``) less
 the wall time of a one-step run of the same scene (start-up: imports, numba
 cache load, placement, reading the data file).  So ours includes its Parquet
@@ -137,11 +138,18 @@ def reference_raw(n: int, steps: int, dt: float = 1e-6) -> dict:
     return raw
 
 
-def _timed(cmd, env, cwd, log: Path) -> float:
+def _timed(cmd, env, cwd, log: Path, cpu: dict | None = None) -> float:
+    """Wall time (s) of a subprocess; its CPU time (user + system, s) goes to ``cpu["last"]``."""
+    import resource
+
+    ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     with open(log, "w") as fh:
         r = subprocess.run(cmd, env=env, cwd=cwd, stdout=fh, stderr=subprocess.STDOUT)
     wall = time.perf_counter() - t0
+    ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if cpu is not None:
+        cpu["last"] = (ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime)
     if r.returncode != 0:
         raise RuntimeError(f"{' '.join(map(str, cmd))} failed (exit {r.returncode}); see {log}:\n"
                            + log.read_text()[-1500:])
@@ -173,13 +181,15 @@ def run_ours(n: int, steps: int, threads: int, work: Path):
 
     env = thread_env(os.environ, threads)
     times = {}
+    cpu = {}
     for label, st in (("startup", 1), ("full", steps)):
         d = work / f"ours_N{n}_T{threads}_{label}"
         shutil.rmtree(d, ignore_errors=True)
         d.mkdir(parents=True)
         write_toml(reference_raw(n, st), d / "scene.toml")
         times[label] = _timed([sys.executable, "-m", "ptrack", "simulate", str(d / "scene.toml"), "--out",
-                               str(d / "out"), "--quiet"], env, ROOT, d / "log.txt")
+                               str(d / "out"), "--quiet"], env, ROOT, d / "log.txt", cpu)
+        times[label + "_cpu"] = cpu["last"]
     tab = pd.read_parquet(work / f"ours_N{n}_T{threads}_full" / "out" / "trajectories.parquet",
                           columns=["frame", "particle", "x", "y", "z", "vx", "vy", "vz"])
     first = tab[tab["frame"] == 0].sort_values("particle")
@@ -212,6 +222,7 @@ def run_lammps(lmp, env, n: int, steps: int, threads: int, data: Path, work: Pat
     """Time LAMMPS (full run less a one-step run); return (seconds, times, final snapshot, loop time)."""
     env = thread_env(env, threads)
     times = {}
+    cpu = {}
     loop = None
     for label, st in (("startup", 1), ("full", steps)):
         d = work / f"lammps_N{n}_T{threads}_{label}"
@@ -223,7 +234,8 @@ def run_lammps(lmp, env, n: int, steps: int, threads: int, data: Path, work: Pat
                      "-var", "every", str(max(1, st // 10)), "-var", "dumpfile", "dump.txt"]
         if threads > 1:
             cmd += ["-sf", "omp", "-pk", "omp", str(threads)]
-        times[label] = _timed(cmd, env, d, d / "stdout.txt")
+        times[label] = _timed(cmd, env, d, d / "stdout.txt", cpu)
+        times[label + "_cpu"] = cpu["last"]
         m = re.search(r"Loop time of ([0-9.eE+-]+)", (d / "log.lammps").read_text())
         loop = float(m.group(1)) if m else None
     snap = read_dump_last(work / f"lammps_N{n}_T{threads}_full" / "dump.txt")
@@ -372,6 +384,7 @@ def main(argv=None):
             r = dict(n=n, steps=args.steps, threads=th, ours_s=t_ours, lammps_s=t_lmp,
                      ours_rate=n * args.steps / t_ours, lammps_rate=n * args.steps / t_lmp,
                      ours_startup=tt_o["startup"], lammps_startup=tt_l["startup"], lammps_loop=loop,
+                     ours_cpu=tt_o["full_cpu"] - tt_o["startup_cpu"], lammps_cpu=tt_l["full_cpu"] - tt_l["startup_cpu"],
                      z_ours=oo["z_mean"], z_lmp=ol["z_mean"], ke_ours=oo["ke"], ke_lmp=ol["ke"],
                      wall_ours=oo["on_wall"], wall_lmp=ol["on_wall"])
             rows.append(r)
@@ -380,11 +393,13 @@ def main(argv=None):
                   f"ratio {r['ours_rate'] / r['lammps_rate']:.2f}; <z> {oo['z_mean']:.5f} / {ol['z_mean']:.5f} m, "
                   f"KE/particle {oo['ke']:.4g} / {ol['ke']:.4g} J", flush=True)
     print("\n| N | steps | threads | ours (s) | LAMMPS (s) | ours particle-steps/s | LAMMPS particle-steps/s | ratio "
-          "| <z> ours / LAMMPS (m) | KE/particle ours / LAMMPS (J) | on wall ours / LAMMPS |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+          "| CPU ours / LAMMPS (s) | ratio by CPU | <z> ours / LAMMPS (m) | KE/particle ours / LAMMPS (J) "
+          "| on wall ours / LAMMPS |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['n']} | {r['steps']} | {r['threads']} | {r['ours_s']:.2f} | {r['lammps_s']:.2f} | "
               f"{r['ours_rate']:.3e} | {r['lammps_rate']:.3e} | {r['ours_rate'] / r['lammps_rate']:.2f} | "
+              f"{r['ours_cpu']:.2f} / {r['lammps_cpu']:.2f} | {r['lammps_cpu'] / r['ours_cpu']:.2f} | "
               f"{r['z_ours']:.5f} / {r['z_lmp']:.5f} | {r['ke_ours']:.4g} / {r['ke_lmp']:.4g} | "
               f"{r['wall_ours']:.3f} / {r['wall_lmp']:.3f} |")
     for n in args.sizes:
