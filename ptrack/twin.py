@@ -306,6 +306,7 @@ def infer_parameters(table: pd.DataFrame, temperature: float, viscosity: float, 
         R_est = radius if radius is not None else solve_R(D, used)
         out["notes"].append(f"D corrected for the pipeline by x{fD:.4g} +- {eD * fD:.2g} (twin truth / twin tracks)")
     ratio = ratio_of(used, R_est)
+    out["sigma_loc_xy_m"] = float(res.sigma_loc["xy"])
     out.update({"D_measured": dict(res.D), "D": Dd, "D_err": Dde, "D_method": "CVE over tracks, field-of-view corrected",
                 "n_tracks": int(table["particle"].nunique()), "wall_ratio": ratio,
                 "wall_hydrodynamics": bool(wall_hydrodynamics), "wall_z_m": wall_z, "assumed_height_m": height})
@@ -385,6 +386,9 @@ def infer_parameters(table: pd.DataFrame, temperature: float, viscosity: float, 
         out["heights"] = {"z_min": float(np.nanmin(z)), "z_max": float(np.nanmax(z)),
                           "median": float(np.nanmedian(z)),
                           "start_p05": float(np.nanpercentile(first, 5)), "start_p95": float(np.nanpercentile(first, 95)),
+                          # uniform start heights: unbiased ends of the range from n samples, min/max -+ range/(n-1)
+                          "start_lo": float(np.nanmin(first) - np.ptp(first[np.isfinite(first)]) / max(len(first) - 1, 1)),
+                          "start_hi": float(np.nanmax(first) + np.ptp(first[np.isfinite(first)]) / max(len(first) - 1, 1)),
                           "unit": "m above the wall (wall_z subtracted)"}
     return out
 
@@ -439,8 +443,8 @@ def build_scene(params: dict, shape, pixel_size: float, frame_interval: float, n
     focal = None
     if three_d:
         h = params["heights"]
-        lo = max(h["start_p05"], 1.05 * R)
-        hi = max(h["start_p95"], lo + R)
+        lo = max(h.get("start_lo", h["start_p05"]), 1.05 * R)
+        hi = max(h.get("start_hi", h["start_p95"]), lo + R)
         Lz = max(h["z_max"], hi) + 2e-6
         placement = [lo, hi]
     elif height is not None:
@@ -797,6 +801,12 @@ def run_twin(movie, out_dir, track_kwargs: dict, temperature: float, viscosity: 
     params["calibration_history"] = history
     t5 = time.perf_counter()
     blur = 0.0 if substeps == 0 else 1 / 6
+    if render["view"].get("sticking"):
+        # deposition compared like with like: the tracks' deposited rows found the same way (flag_stuck)
+        # in the movie's and the twin's tracks; the truth has its own column
+        sig = params.get("sigma_loc_xy_m") or 0.0
+        measured = flag_stuck(measured, sig)
+        twin_tracks = flag_stuck(twin_tracks, sig)
     cmp1 = compare_tables([measured, twin_tracks], ["measured", "twin"], n_boot=n_boot, n_perm=n_perm, level=level,
                           seed=seed, motion_blur=[blur, blur], field_of_view="auto")["comparisons"][0]
     cmp2 = compare_tables([twin_tracks, truth], ["twin tracks", "twin truth"], n_boot=n_boot, n_perm=n_perm,
@@ -855,7 +865,7 @@ def headline_rows(result: dict) -> list[tuple[str, str]]:
                                        f"({p['particles_per_frame']:.3g} per frame)"))
     if p.get("heights"):
         h = p["heights"]
-        rows.append(("heights (start, 5-95 %)", f"{h['start_p05'] * 1e6:.3g} - {h['start_p95'] * 1e6:.3g} um"))
+        rows.append(("start heights (uniform range)", f"{h['start_lo'] * 1e6:.3g} - {h['start_hi'] * 1e6:.3g} um"))
     c = p["camera_measured"]
     rows += [("background", f"{c['background_photons']:.4g} photons/px"),
              ("photons per particle", f"{c['photons']:.4g} (IQR {c['photons_iqr']:.3g})"),
