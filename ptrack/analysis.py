@@ -411,6 +411,10 @@ def analyze_movie(movie, radius: float, viscosity: float, temperature: float, re
     kw = check_parameters(radius, viscosity, temperature, wall_z, height, estimator, motion_blur, n_boot)
     if report_dir is not None:
         check_writable_dir(report_dir)
+    if out is not None:
+        if Path(out).is_dir():
+            raise UserError(f"--out {out} is a folder", "give a file name for the trajectories table")
+        check_writable_dir(Path(out).parent)
     track_summary = {}
     if table is None:
         from .pipeline import track_movie

@@ -96,6 +96,16 @@ def test_analyze_checks_every_parameter_before_tracking(tmp_path):
         (tmp_path / "file").write_text("x")
         analyze_movie(tmp_path / "none.tif", radius=1e-6, viscosity=1e-3, temperature=293.15,
                       report_dir=tmp_path / "file")
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o500)
+    import os
+
+    if not os.access(ro, os.W_OK):              # (root may write anywhere)
+        with pytest.raises(UserError, match="cannot write"):
+            analyze_movie(tmp_path / "none.tif", radius=1e-6, viscosity=1e-3, temperature=293.15, out=ro / "t.parquet")
+    with pytest.raises(UserError, match="is a folder"):
+        analyze_movie(tmp_path / "none.tif", radius=1e-6, viscosity=1e-3, temperature=293.15, out=tmp_path)
 
 
 def test_interrupted_report_leaves_no_half_report(tmp_path, monkeypatch):
