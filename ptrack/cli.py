@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 from . import __version__
@@ -97,12 +98,18 @@ def _interrupted(exc: BaseException) -> bool:
 
 
 def _load(modname: str, what: str):
-    try:
-        return importlib.import_module(modname)
-    except ModuleNotFoundError as exc:
-        if exc.name and modname.startswith(exc.name):
-            raise UserError(f"'{what}' is not available in this build ({modname} missing)", "update ptrack")
-        raise
+    return importlib.import_module(modname)
+
+
+def _headless_plots() -> None:
+    """Plots from the command line go to files: the Agg backend, set here once for every command
+    (the plotting functions leave the backend alone, so a notebook keeps its own)."""
+    if "matplotlib" in sys.modules:
+        import matplotlib
+
+        matplotlib.use("Agg")
+    else:
+        os.environ.setdefault("MPLBACKEND", "Agg")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -137,6 +144,7 @@ def main(argv: list[str] | None = None) -> int:
         parser = _sub_parser(prog, module, help_text)
         args = parser.parse_args(normalise_negative_numbers(rest, parser.option_strings()))
         check_namespace(prog[len("ptrack "):], args, parser.numeric_actions)
+        _headless_plots()
         return int(module.run(args) or 0)
     except UserError as exc:
         return _fail(str(exc))
