@@ -94,10 +94,12 @@ def register_scale(a, b, max_side: int = 64):
 
 
 def default_fine_step(z) -> float:
-    """Spacing of the interpolated templates (m): the calibration step where it is 0.2 um or less, else the step
+    """Spacing of the interpolated templates (m): the calibration step where it is 0.3 um or less, else the step
     divided into parts of at most 0.2 um (and at most 16 parts; at most ~400 templates in all)."""
     z = np.asarray(z, float)
     step = float(np.median(np.diff(z)))
+    if step <= 0.3e-6:
+        return step         # fine enough as recorded (the parabola through Cm(z) resolves a fraction of it)
     fine = min(step, 0.2e-6)
     depth = float(z[-1] - z[0])
     return max(fine, step / 16, depth / 400)

@@ -159,6 +159,9 @@ def _regions(p, noise, signed: bool, sigma: float, k: float, min_frac: float, ra
         r95 = float(d[order][np.searchsorted(cum, 0.95 * cum[-1])]) if cum[-1] > 0 else 3.0
         if not raw_extent:
             r95 = math.sqrt(max(r95 * r95 - (2.45 * sigma) ** 2, 0.0)) + sigma   # minus most of the blur's own
+        # cut by the page edge: the disc holding 95 % of the light leaves the page (a region touching the edge
+        # may be only the faint tail of a bright image, or the spread of a coarse smoothing)
+        edge = bool(edge) and (cy < r95 or cx < r95 or cy > H - 1 - r95 or cx > W - 1 - r95)
         out.append({"y": cy, "x": cx, "r95": max(r95, 1.5), "bbox": bbox, "edge": bool(edge),
                     "flux": float(flux[i]), "sigma": float(sigma)})
     return out
@@ -167,12 +170,11 @@ def _regions(p, noise, signed: bool, sigma: float, k: float, min_frac: float, ra
 def find_beads(page, signed: bool = False, sigmas=(2.0, 5.0, 12.0), k: float = 5.0, min_frac: float = 0.05):
     """Bead images on one calibration page.
 
-    Regions of the smoothed page above ``k`` noise units, at the finest of
-    the smoothing scales ``sigmas`` that still sees every bead whole: from
-    the coarsest scale down, a finer one is taken while it finds no more
-    regions (a ring broken into pieces) and the brightest region keeps at
-    least 60 % of its extent (a faint, wide ring of which only a piece
-    rises above the noise). In-focus images end at the finest scale, with
+    Regions of the smoothed page above ``k`` noise units, each bead at the
+    finest of the smoothing scales ``sigmas`` that still sees it whole: the
+    beads are the regions at the coarsest scale, and each is replaced by
+    the region a finer scale finds in it while that is a single region on
+    its centre (not a ring in pieces, nor a piece of a faint ring). In-focus images end at the finest scale, with
     the extent measured on the unsmoothed page.
 
     Parameters
@@ -214,17 +216,16 @@ def find_beads(page, signed: bool = False, sigmas=(2.0, 5.0, 12.0), k: float = 5
     for j in range(len(sigmas) - 1, -1, -1):
         reg = _regions(p, noise, signed, sigmas[j], k, min_frac, raw_extent=(j == 0))
         if best is None:
-            if not reg:
-                continue
-            best = reg
+            best = reg or None
             continue
-        if not reg or len(reg) > len(best):
-            break
-        big = max(best, key=lambda b: b["flux"])
-        near = min(reg, key=lambda b: math.hypot(b["x"] - big["x"], b["y"] - big["y"]))
-        if near["r95"] < 0.6 * big["r95"] - 2.0:
-            break
-        best = reg
+        # per bead: the finer scale replaces the coarser where exactly one finer region lies in the bead's
+        # coarse region, on its centre (a ring in pieces, or only a piece of a faint ring, keeps the coarse one)
+        for i, b in enumerate(best):
+            r0, r1, c0, c1 = b["bbox"]
+            inside = [q for q in reg if r0 <= q["y"] < r1 and c0 <= q["x"] < c1]
+            if len(inside) == 1 and math.hypot(inside[0]["x"] - b["x"], inside[0]["y"] - b["y"]) <= max(
+                    3.0, 0.3 * b["r95"]):
+                best[i] = inside[0]
     return best or [], p, noise
 
 
