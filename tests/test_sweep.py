@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import tomllib
 import math
 from pathlib import Path
 
@@ -118,7 +119,7 @@ def test_unreachable_scheduler_refused(scene, tmp_path, capsys):
 
 
 def test_quick_shortens_runs(scene, tmp_path):
-    cases = build_cases(__import__("tomllib").loads(SCENE), [], 1, tmp_path, quick=True)
+    cases = build_cases(tomllib.loads(SCENE), [], 1, tmp_path, quick=True)
     assert cases[0].raw["time"]["final"] == pytest.approx(0.006)
 
 
