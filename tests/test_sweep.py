@@ -2,8 +2,8 @@
 from __future__ import annotations
 
 import json
-import tomllib
 import math
+import tomllib
 from pathlib import Path
 
 import numpy as np
