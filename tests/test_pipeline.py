@@ -8,6 +8,7 @@ import pandas as pd
 import pytest
 
 from ptrack.errors import UserError
+from ptrack.motion import match_truth
 from ptrack.msd import estimate_diffusion, stokes_einstein
 from ptrack.analysis import analyze_movie
 from ptrack.pipeline import default_output, track_movie
@@ -54,17 +55,17 @@ def test_track_movie_table_and_links(movie, tmp_path):
     np.testing.assert_allclose(t["x"], t["x_px"] * movie["px"])
     assert np.isnan(t["z"]).all() and (t["sigma_x"] > 0).all()
     assert summary["n_frames"] == 60 and summary["n_tracks"] == t["particle"].nunique()
-    # every localisation sits on a true particle, and links follow one true particle
+    # every localisation sits on a true particle, and links follow one true particle (ptrack.motion.match_truth:
+    # the one truth-matching rule)
     truth = movie["truth"]
-    merged = t.merge(truth[["frame", "particle", "x_px", "y_px"]], on="frame", suffixes=("", "_true"))
-    merged["d"] = np.hypot(merged["x_px"] - merged["x_px_true"], merged["y_px"] - merged["y_px_true"])
-    best = merged.loc[merged.groupby(["frame", "particle"])["d"].idxmin()]
-    assert (best["d"] < 1.0).mean() > 0.95          # the rest: two particles overlapping
-    best = best.sort_values(["particle", "frame"])
-    same_track = best["particle"].to_numpy()[1:] == best["particle"].to_numpy()[:-1]
-    same_true = best["particle_true"].to_numpy()[1:] == best["particle_true"].to_numpy()[:-1]
-    clean = (best["d"].to_numpy()[1:] < 0.5) & (best["d"].to_numpy()[:-1] < 0.5)   # not merged with a neighbour
-    assert same_true[same_track & clean].mean() > 0.97      # links join the same true particle
+    fi, _ = match_truth(t, truth, max_px=1.0)
+    assert len(fi) / len(t) > 0.95                  # the rest: two particles overlapping
+    fi, ti = match_truth(t, truth, max_px=0.5)      # not merged with a neighbour
+    m = pd.DataFrame({"particle": t.loc[fi, "particle"].to_numpy(), "frame": t.loc[fi, "frame"].to_numpy(),
+                      "true": truth.loc[ti, "particle"].to_numpy()}).sort_values(["particle", "frame"])
+    same_track = m["particle"].to_numpy()[1:] == m["particle"].to_numpy()[:-1]
+    same_true = m["true"].to_numpy()[1:] == m["true"].to_numpy()[:-1]
+    assert same_true[same_track].mean() > 0.97      # links join the same true particle
     in_view = truth[(truth["x_px"] > 3) & (truth["x_px"] < 136) & (truth["y_px"] > 3) & (truth["y_px"] < 136)]
     assert len(t) / len(in_view) > 0.95
 
