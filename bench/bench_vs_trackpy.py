@@ -9,7 +9,14 @@
    trackpy.batch and of ptrack.locate, both on one core (cv2 threads = 1,
    trackpy processes = 1), and accuracy on these frames too.
 
-Run: ``.venv/bin/python bench/bench_vs_trackpy.py [--quick]``
+3. locate + link, end to end, from 256^2 to 2048^2 rendered frames (jittered
+   grids, steps of up to 4 px) and on trackpy's own real brightfield movie:
+   ptrack's knob-free default (multi-scale detection, false-alarm threshold,
+   polarity from the data, ``ptrack.link.link`` with its search-range
+   estimate) against ``trackpy.batch`` + ``trackpy.link`` given the best
+   setting of part 1 and the search range ptrack found (trackpy's best case).
+
+Run: ``.venv/bin/python bench/bench_vs_trackpy.py [--quick] [--part 3]``
 """
 from __future__ import annotations
 
@@ -75,7 +82,11 @@ def main():
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--part", type=int, choices=(1, 2, 3), help="run one part only (3 uses d=7, minmass=200)")
     args = ap.parse_args()
+    if args.part == 3:
+        part3(args.quick, 7, 200)
+        return
     optics = render.Optics()
     cam = render.Camera(photons=2000 / 0.6, background=20.0)
     px = render.sample_pixel_size(optics, cam.pixel_pitch)
@@ -129,6 +140,90 @@ def main():
               f"{tprec:7.3f}")
         rows.append((tpf, ttpf))
     print("    (speed-up = trackpy time / ptrack time per frame; frames already in memory for both)")
+    part3(args.quick, d, mm)
+
+
+def _ours_locate_link(frames, cam):
+    import pandas as pd
+
+    from ptrack.link import link
+
+    t0 = time.perf_counter()
+    pol = None
+    chunks = []
+    for i, f in enumerate(frames):
+        df = locate(f, gain=cam.gain, offset=cam.offset, read_noise=cam.read_noise, brightfield=pol, frame_no=i)
+        pol = bool(df["polarity"].iloc[0] < 0) if len(df) and pol is None else pol   # fixed after frame 0
+        chunks.append(df)
+    feats = pd.concat(chunks, ignore_index=True)
+    t1 = time.perf_counter()
+    linked = link(feats)
+    t2 = time.perf_counter()
+    return feats, linked, t1 - t0, t2 - t1
+
+
+def _trackpy_locate_link(frames, diameter, minmass, search_range, invert=False):
+    import trackpy
+
+    trackpy.quiet()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        t0 = time.perf_counter()
+        f = trackpy.batch(list(frames), diameter, minmass=minmass, invert=invert, processes=1)
+        t1 = time.perf_counter()
+        trackpy.link(f, search_range, memory=3)
+        t2 = time.perf_counter()
+    return f, t1 - t0, t2 - t1
+
+
+def part3(quick, d, mm):
+    import cv2
+
+    cv2.setNumThreads(1)
+    optics = render.Optics()
+    cam = render.Camera(photons=2000 / 0.6, background=20.0)
+    px = render.sample_pixel_size(optics, cam.pixel_pitch)
+    rng = np.random.default_rng(9)
+    print("\n## 3. locate + link, ptrack default (no option) vs trackpy.batch + trackpy.link, one core each")
+    print("command: .venv/bin/python bench/bench_vs_trackpy.py --part 3" + (" --quick" if quick else ""))
+    print(f"{'frames':>18} {'N/frame':>7} | {'ptrack loc':>10} {'link':>6} {'total':>6} {'RMSE':>6} {'rec':>5} {'prec':>5} | "
+          f"{'trackpy loc':>11} {'link':>6} {'total':>6} {'RMSE':>6} {'rec':>5} {'prec':>5} | {'speed-up':>8}")
+    for size, spacing, n in ((256, 24, 20), (512, 40, 20), (1024, 60, 10), (2048, 100, 5)):
+        n = max(3, n // 2) if quick else n
+        table, t = grid_truth(n, (size, size), spacing, rng, margin=16, px=px)
+        frames = list(render.render_frames(table, shape=(size, size), camera=cam, seed=size))
+        if size == 256:
+            _ours_locate_link(frames[:2], cam)      # compile / warm up
+        feats, linked, tl, tk = _ours_locate_link(frames, cam)
+        rm, _, rec, prec = score(feats[["x_px", "y_px"]].to_numpy(), t, n, feats["frame"].to_numpy())
+        sr = linked.attrs["link"]["search_range_px"]
+        f, ttl, ttk = _trackpy_locate_link(frames, d, mm, sr)
+        trm, _, trec, tprec = score(f[["x", "y"]].to_numpy(), t, n, f["frame"].to_numpy())
+        print(f"{'%d^2 x %d' % (size, n):>18} {len(t) / n:7.0f} | {1000 * tl / n:8.1f}ms {1000 * tk / n:4.0f}ms "
+              f"{1000 * (tl + tk) / n:4.0f}ms {rm.mean():6.3f} {rec:5.3f} {prec:5.3f} | {1000 * ttl / n:9.1f}ms "
+              f"{1000 * ttk / n:4.0f}ms {1000 * (ttl + ttk) / n:4.0f}ms {trm.mean():6.3f} {trec:5.3f} {tprec:5.3f} | "
+              f"{(ttl + ttk) / (tl + tk):8.2f}")
+    real = ROOT.parent / "shared" / "data" / "real" / "trackpy_image_sequence"
+    if (real / "frames").is_dir():
+        import pandas as pd
+        from scipy.spatial import cKDTree
+
+        frames = [cv2.imread(str(p), cv2.IMREAD_UNCHANGED) for p in sorted((real / "frames").glob("*.png"))]
+        ref = pd.read_csv(real / "reference" / "trackpy_locate_frame0.csv")[["x", "y"]].to_numpy()
+        feats, linked, tl, tk = _ours_locate_link(frames, cam)
+        f, ttl, ttk = _trackpy_locate_link(frames, 9, 140, linked.attrs["link"]["search_range_px"], invert=True)
+        n = len(frames)
+        out = []
+        for xy in (feats[feats["frame"] == 0][["x_px", "y_px"]].to_numpy(), f[f["frame"] == 0][["x", "y"]].to_numpy()):
+            dr, _ = cKDTree(xy).query(ref)
+            dd, _ = cKDTree(ref).query(xy)
+            out.append(((dr < 1).mean(), (dd > 1).sum() / len(ref)))
+        print(f"{'real 640x424 x %d' % n:>18} {len(feats) / n:7.0f} | {1000 * tl / n:8.1f}ms {1000 * tk / n:4.0f}ms "
+              f"{1000 * (tl + tk) / n:4.0f}ms  found {out[0][0]:.3f} of trackpy's 344 within 1 px, extra {out[0][1]:.2f} | "
+              f"{1000 * ttl / n:9.1f}ms {1000 * ttk / n:4.0f}ms {1000 * (ttl + ttk) / n:4.0f}ms (its own reference) | "
+              f"{(ttl + ttk) / (tl + tk):8.2f}")
+    print("    (RMSE px over matches within 2 px; trackpy given d=%d, minmass=%d and ptrack's search range;" % (d, mm))
+    print("     real movie: trackpy diameter=9, minmass=140, invert=True, as its reference; machine shared with other jobs)")
 
 
 if __name__ == "__main__":

@@ -43,7 +43,7 @@ import numpy as np
 from ..errors import UserError
 
 __all__ = ["DEFAULT_SCALES", "FALSE_ALARM_RATE", "bandpass", "noise_maps", "false_alarm_threshold",
-           "choose_polarity", "detect"]
+           "detect"]
 
 #: Default scale ladder (Gaussian sigma of the spot, px): sqrt(2) steps from 1 to 5.7 px.
 DEFAULT_SCALES = (1.0, 1.41, 2.0, 2.83, 4.0, 5.66)
@@ -89,7 +89,7 @@ def _blur_ladder(work, sigmas):
     return out
 
 
-def noise_maps(img, tile: int = 32, step: int = 2):
+def noise_maps(img, tile: int = 32, step: int = 2, what: str = "both", shape=None):
     """Local background (median) and noise (1.4826 MAD) of an image over tiles, interpolated to full size.
 
     Parameters
@@ -101,6 +101,13 @@ def noise_maps(img, tile: int = 32, step: int = 2):
     step : int
         Sub-sampling inside each tile (speed; the MAD needs only a few
         hundred samples).
+    what : {"both", "inverse noise", "grid"}
+        ``"inverse noise"``: only 1 / noise (one interpolation, for the
+        band-passed images whose background is zero by construction);
+        ``"grid"``: 1 / noise on the tile grid, not interpolated.
+    shape : (H, W), optional
+        ``img`` is already sub-sampled by ``step`` from a frame of this shape
+        (the maps are returned at full size).
 
     Returns
     -------
@@ -108,11 +115,11 @@ def noise_maps(img, tile: int = 32, step: int = 2):
     """
     import cv2
 
-    H, W = img.shape
+    H, W = img.shape if shape is None else shape
     t = int(max(8, min(tile, H, W)))
     nh, nw = max(1, H // t), max(1, W // t)
     # tiles cover the frame: the last row/column of tiles absorbs the remainder
-    sub = img[::step, ::step]
+    sub = img[::step, ::step] if shape is None else img
     # tiles of the sub-sampled image: the remainder rows/columns join the last tile's statistics by
     # the interpolation (they are within one tile of it)
     th, tw = max(1, (H // nh) // step), max(1, (W // nw) // step)
@@ -129,6 +136,13 @@ def noise_maps(img, tile: int = 32, step: int = 2):
     pos = mad[mad > 0]
     floor = float(np.median(pos)) * 0.25 if pos.size else 1e-6
     mad = np.maximum(mad, max(floor, 1e-6))
+    if what == "grid":
+        return np.ascontiguousarray(1.0 / mad, np.float32)
+    if what == "inverse noise":
+        inv = (1.0 / mad).astype(np.float32)
+        if nh == 1 and nw == 1:
+            return np.full((H, W), inv[0, 0], np.float32)
+        return cv2.resize(inv, (W, H), interpolation=cv2.INTER_LINEAR)
     if nh == 1 and nw == 1:
         return np.full((H, W), med[0, 0], np.float32), np.full((H, W), mad[0, 0], np.float32)
     return (cv2.resize(med, (W, H), interpolation=cv2.INTER_LINEAR),
@@ -179,6 +193,39 @@ def false_alarm_threshold(scales, rate: float = FALSE_ALARM_RATE) -> float:
         else:
             hi = mid
     return 0.5 * (lo + hi)
+
+
+@nb.njit(cache=True)
+def _update_best(b1, b2, inv, sign, index, best, arg):
+    # z = sign (b1 - b2) / noise at every pixel, kept where it beats the best so far (one pass, no
+    # full-frame temporaries: the band-passed image itself is never stored). inv is the tile grid of
+    # 1 / noise, interpolated bilinearly here between tile centres (as cv2.resize INTER_LINEAR would)
+    h, w = best.shape
+    gh, gw = inv.shape
+    fy = gh / h
+    fx = gw / w
+    x0 = np.empty(w, np.int64)
+    x1 = np.empty(w, np.int64)
+    wx = np.empty(w)
+    for c in range(w):
+        xx = min(max((c + 0.5) * fx - 0.5, 0.0), gw - 1.0)
+        x0[c] = min(int(xx), gw - 1)
+        x1[c] = min(x0[c] + 1, gw - 1)
+        wx[c] = xx - x0[c]
+    rowv = np.empty(gw)
+    for r in range(h):
+        yy = min(max((r + 0.5) * fy - 0.5, 0.0), gh - 1.0)
+        y0 = min(int(yy), gh - 1)
+        y1 = min(y0 + 1, gh - 1)
+        wy = yy - y0
+        for j in range(gw):
+            rowv[j] = (1 - wy) * inv[y0, j] + wy * inv[y1, j]
+        for c in range(w):
+            iv = (1 - wx[c]) * rowv[x0[c]] + wx[c] * rowv[x1[c]]
+            z = sign * (b1[r, c] - b2[r, c]) * iv
+            if z > best[r, c]:
+                best[r, c] = z
+                arg[r, c] = index
 
 
 @nb.njit(cache=True)
@@ -241,21 +288,6 @@ def _suppress(rows, cols, scale, order, radius_factor, min_radius):
     return keep
 
 
-def choose_polarity(snr_maps, u: float) -> int:
-    """+1 (bright particles) or -1 (dark particles) from signed SNR maps: the side whose significant
-    local maxima carry more summed excess SNR (``sum(|snr| - u)`` over maxima beyond ``u``)."""
-    score = []
-    for sign in (1.0, -1.0):
-        tot = 0.0
-        for m in snr_maps:
-            mm = np.ascontiguousarray(sign * m, np.float32)
-            r, c = _maxima_snr(mm, float(u), 1)
-            if len(r):
-                tot += float(np.sum(mm[np.asarray(r), np.asarray(c)] - u))
-        score.append(tot)
-    return 1 if score[0] >= score[1] else -1
-
-
 def detect(frame, scales=None, polarity: int | None = None, snr: float | None = None,
            rate: float = FALSE_ALARM_RATE, median: bool = True, tile: int = 32, edge: int = 2,
            suppress: float = 2.0, offset: float = 0.0):
@@ -294,7 +326,8 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         ``snr`` (best response, noise units), ``signal`` (band-passed height,
         counts, polarity applied), ``polarity`` (+1/-1), ``threshold`` (u),
         ``noise`` (median local noise of the finest scale, counts),
-        ``scales``.
+        ``scales``, ``background_map`` and ``noise_map`` (the frame's local
+        median and noise, counts, full size).
     """
     import cv2
 
@@ -308,29 +341,42 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
     H, W = work.shape
     ladder = sorted(set(scales) | {_SURROUND * x for x in scales})
     blurs = dict(zip(ladder, _blur_ladder(work, ladder)))
-    snrs, sigs = [], []
     noise0 = None
+    invs = []
     for s in scales:
-        bp = blurs[s] - blurs[_SURROUND * s]
         # tiles hold ~150 correlation areas of the band-passed noise (side 12 s): a MAD from fewer
         # independent samples scatters by several per cent, which multiplies the false-alarm rate
-        bg, nz = noise_maps(bp, tile=max(int(tile), int(12 * s)), step=max(2, int(round(s))))
+        # (and, on large frames, at most ~256 tiles); ~600-1000 samples per tile fix the MAD to ~3 %
+        t_side = max(int(tile), int(12 * s), int(math.sqrt(H * W / 256.0)))
+        st = max(1, t_side // 28)
+        # the band-pass has no response to a constant: its background is zero, only the noise is
+        # mapped, from the sub-sampled band-passed image
+        bsub = blurs[s][::st, ::st] - blurs[_SURROUND * s][::st, ::st]
+        inv = noise_maps(bsub, tile=t_side, step=st, what="grid", shape=(H, W))
         if noise0 is None:
-            noise0 = float(np.median(nz))
-        bp -= bg
-        sigs.append(bp)
-        snrs.append(bp / nz)
+            noise0 = float(1.0 / np.median(inv))
+        invs.append(inv)
+
+    def best_map(sign):
+        best = np.full((H, W), -np.inf, np.float32)
+        arg = np.zeros((H, W), np.int8)
+        for i, s in enumerate(scales):
+            _update_best(blurs[s], blurs[_SURROUND * s], invs[i], float(sign), i, best, arg)
+        return best, arg
+
     if polarity is None:
-        polarity = choose_polarity(snrs, u)
+        # the side whose significant maxima carry more summed excess SNR, sum(z - u), wins
+        score = []
+        for sign in (1, -1):
+            bm, _ = best_map(sign)
+            r, c = _maxima_snr(bm, float(u), 1)
+            score.append(float(np.sum(bm[np.asarray(r, np.int64), np.asarray(c, np.int64)] - u)) if len(r) else 0.0)
+        polarity = 1 if score[0] >= score[1] else -1
     polarity = 1 if polarity >= 0 else -1
-    best = snrs[0] * polarity
-    k = np.zeros(best.shape, np.int8)
-    for i in range(1, len(scales)):
-        z_i = snrs[i] * polarity
-        better = z_i > best
-        np.copyto(best, z_i, where=better)
-        k[better] = i
-    best = np.ascontiguousarray(best, np.float32)
+    best, k = best_map(polarity)
+    # background and noise of the frame itself (the skew correction; the localiser's background)
+    rb, rn = noise_maps(np.ascontiguousarray(frame, np.float32), tile=max(int(tile), int(math.sqrt(H * W / 256.0))),
+                        step=2)
     rows, cols = _maxima_snr(best, float(u), int(edge))
     rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
     kk = k[rows, cols]
@@ -341,7 +387,6 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         # with the band-passed skewness g = skew_factor(s) / sqrt(background photons); the photons
         # follow from the local mean and variance of the raw frame (mean / noise^2 = photons per count
         # for Poisson), so no camera calibration is needed. Read noise only lowers the estimate (safe side).
-        rb, rn = noise_maps(np.ascontiguousarray(frame, np.float32), tile=max(int(tile), 32), step=2)
         lev = np.maximum(rb[rows, cols] - float(offset), 1e-6)
         g_pix = np.clip(rn[rows, cols] / lev, 0.0, 2.0)          # 1 / sqrt(photons)
         g = np.array([skew_factor(s) for s in scales])[kk] * g_pix
@@ -350,7 +395,8 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
     # size of each particle: the scale of the largest band-passed response (the DoG with a fixed ratio
     # is scale-normalised, so its response to a Gaussian spot of width a peaks near s = a), not the
     # scale of the best SNR (which favours fine scales when the background has coarse structure)
-    amp = np.array([g[rows, cols] for g in sigs]) * polarity if len(rows) else np.zeros((len(scales), 0))
+    amp = np.array([blurs[s][rows, cols] - blurs[_SURROUND * s][rows, cols] for s in scales]) * polarity \
+        if len(rows) else np.zeros((len(scales), 0))
     size_k = np.argmax(amp, axis=0) if len(rows) else np.zeros(0, int)
     sc = np.asarray(scales)[size_k]
     if len(rows) > 1:
@@ -359,4 +405,5 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         rows, cols, sc, z, kk, amp = rows[keep], cols[keep], sc[keep], z[keep], kk[keep], amp[:, keep]
     sig = amp[kk, np.arange(len(rows))] if len(rows) else np.zeros(0)
     return {"rows": rows, "cols": cols, "scale": sc, "snr": z, "signal": np.asarray(sig, np.float64),
-            "polarity": polarity, "threshold": float(u), "noise": float(noise0), "scales": scales}
+            "polarity": polarity, "threshold": float(u), "noise": float(noise0), "scales": scales,
+            "background_map": rb, "noise_map": rn}

@@ -680,7 +680,11 @@ def fit_spots(img, rows, cols, sigma: float, gain: float = 1.0, offset: float = 
         grouped = np.zeros(len(rows), bool)
     index = np.arange(len(rows))
     if split and len(rows):
-        cand = np.nonzero(ok & ~grouped & ((p[:, 4] > split_width * sigma) | (ecc > split_ecc)))[0]
+        # "wide" relative to the spots' own typical width (median over the isolated fits, when there are
+        # enough), not the starting width: a start off by 20 % must not send every spot to the split test
+        iso = ok & ~grouped
+        ref = float(np.median(p[iso, 4])) if iso.sum() >= 10 else float(sigma)
+        cand = np.nonzero(ok & ~grouped & ((p[:, 4] > split_width * ref) | (ecc > split_ecc)))[0]
         if len(cand):
             out = np.zeros((len(cand), 2, 5))
             vout = np.zeros((len(cand), 2, 5))

@@ -14,7 +14,7 @@ import pandas as pd
 from ..errors import UserError
 from .fit import fit_spots
 from .peaks import _default_separation, detect_raw, find_peaks
-from .detect import FALSE_ALARM_RATE, detect, noise_maps
+from .detect import FALSE_ALARM_RATE, detect
 from .preprocess import median3, noise_sigma
 from .radial import radial_centres
 
@@ -303,7 +303,7 @@ def _locate_multiscale(frame, snr=None, gain=1.0, offset=0.0, read_noise=0.0, br
     n = len(rows)
     # background-subtracted image, particles positive (dark particles: the background minus the frame)
     f32 = raw.astype(np.float32)
-    bgmap, nzmap = noise_maps(f32, tile=32, step=2)
+    bgmap, nzmap = det["background_map"], det["noise_map"]
     sub = (f32 - bgmap) if polarity > 0 else (bgmap - f32)
     noise = float(np.median(nzmap))
     if polarity > 0 and median and n:
