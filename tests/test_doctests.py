@@ -4,7 +4,7 @@ import importlib
 
 import pytest
 
-MODULES = ["ptrack.motion", "ptrack.motion.tracks", "ptrack.motion.truth", "ptrack.motion.stokes", "ptrack.analysis",
+MODULES = ["ptrack.motion", "ptrack.motion.diffusion", "ptrack.motion.tracks", "ptrack.motion.truth", "ptrack.motion.stokes", "ptrack.analysis",
            "ptrack.plot", "ptrack.mainjob"]
 
 
