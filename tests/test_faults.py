@@ -263,6 +263,7 @@ class Case:
     not_words: tuple = ()  # words the message must not contain (wrong blame)
     expect: str | None = None  # the message must name this corpus input (the fault, not something else)
     deadline: float | None = None  # run in a subprocess that must end within this many seconds
+    setup: list | None = None  # a command line run first (must succeed); what it writes is not left behind
 
     def expected_text(self, corpus: dict) -> str | None:
         if self.expect is None:
@@ -270,11 +271,11 @@ class Case:
         p = corpus.get(self.expect)
         return p.name if p is not None else self.expect
 
-    def resolve(self, corpus: dict, out: Path, mounts: dict) -> list[str]:
+    def resolve(self, corpus: dict, out: Path, mounts: dict, argv: list | None = None) -> list[str]:
         sub = {k: str(v) for k, v in corpus.items()}
         sub["out"] = str(out)
         sub.update({k: str(v) for k, v in mounts.items()})
-        return [a.format(**sub) for a in self.argv]
+        return [a.format(**sub) for a in (self.argv if argv is None else argv)]
 
 
 def _movie_cases():
@@ -330,6 +331,9 @@ def _scene_cases():
                       ["simulate", "{scene_ok}", "--out", "{out}/s", "--quiet", "--resume"]))
     cases.append(Case("simulate-dem-resume-without-checkpoint", "scene",
                       ["simulate", "{dem}", "--out", "{out}/s", "--quiet", "--resume"]))
+    cases.append(Case("simulate-resume-with-another-scene", "scene",
+                      ["simulate", "{dem_long}", "--out", "{out}/s", "--quiet", "--resume"],
+                      setup=["simulate", "{dem}", "--out", "{out}/s", "--quiet"]))
     cases.append(Case("simulate-run-that-takes-forever", "scene",
                       ["simulate", "{scene_forever}", "--out", "{out}/s", "--quiet"], deadline=8.0))
     return cases
@@ -511,6 +515,14 @@ class Outcome:
         return p
 
 
+def _stat(p: Path):
+    try:
+        st = p.stat()
+    except FileNotFoundError:
+        return None
+    return st.st_size, st.st_mtime_ns
+
+
 def _snapshot(*dirs) -> set:
     s = set()
     for d in dirs:
@@ -525,6 +537,7 @@ def run_inprocess(argv: list[str], cwd: Path, watch=()) -> Outcome:
     from ptrack.cli import main
 
     before = _snapshot(cwd, *watch)
+    before_stat = {p: _stat(p) for p in before if p.is_file()}
     err, out = io.StringIO(), io.StringIO()
     old = os.getcwd()
     t0 = time.perf_counter()
@@ -548,6 +561,7 @@ def run_inprocess(argv: list[str], cwd: Path, watch=()) -> Outcome:
     finally:
         os.chdir(old)
     new = sorted(_snapshot(cwd, *watch) - before)
+    new += sorted(f"{p} (changed)" for p, st in before_stat.items() if _stat(p) != st)
     return Outcome(code, err.getvalue(), out.getvalue(), new, exc, time.perf_counter() - t0)
 
 
@@ -729,6 +743,11 @@ class Suite:
             return run_interrupted(argv, work, wait_for="checkpoint.npz" if "dem" in case.id else "*.part")
         if case.deadline is not None:
             return run_deadline(argv, work, case.deadline)
+        if case.setup is not None:
+            pre = run_inprocess(case.resolve(self.corpus, out, self.mounts, case.setup), work)
+            if pre.code != 0 or pre.exception is not None:
+                return Outcome(pre.code, pre.stderr, pre.stdout, [], pre.exception or RuntimeError(
+                    f"setup {case.setup[:2]} failed: {pre.lines()[-1:] or pre.code}"), pre.seconds)
         return run_inprocess(argv, work, watch)
 
     def close(self):
