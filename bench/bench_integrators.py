@@ -99,7 +99,7 @@ def grows(phi, dt, mass, gamma, radius, rho_f, mu, fz, v_start, v_ref, nsteps=40
     with np.errstate(all="ignore"):
         trapezoidal_kernel(pos, vel, np.array([radius]), np.array([mass]), np.array([gamma]), np.zeros(1), fconst,
                            np.zeros(3), np.zeros(3), rho_f, mu, 0.0, dt, nsteps, 1, np.full(3, 1e300), modes,
-                           out_p, out_v, False, phi, 1e-13, 200, fz == 0.0, 0, 1)
+                           out_p, out_v, False, phi, 1e-13, 200, fz == 0.0, 0, 1, 0, 0)
     d = abs(vel[0, 2] - v_ref)
     return not (np.isfinite(d) and d <= abs(v_start - v_ref))
 

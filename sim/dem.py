@@ -76,27 +76,8 @@ G_MAX_OVERLAP, G_V_MAX, G_HAS_BOTTOM, G_TOL, G_STICK, G_MAX_STEP, G_T_STOP = 0, 
 # the ``chunk_peaks`` array: largest values over a run() call
 P_OVERLAP, P_W2, P_DAMP = 0, 1, 2
 
-# --------------------------------------------------------------------------- random numbers
-
-
-@njit(cache=True, inline="always")
-def _mix64(z):
-    # splitmix64 finaliser on uint64
-    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-    return z ^ (z >> np.uint64(31))
-
-
-@njit(cache=True)
-def counter_normal(seed, step, index):
-    """Standard normal number keyed by (seed, step, index): same key, same number."""
-    key = np.uint64(seed) * np.uint64(0x9E3779B97F4A7C15) + np.uint64(step) * np.uint64(0xD1B54A32D192ED03) \
-        + np.uint64(index) * np.uint64(0x8CB92BA72F3D8DD7)
-    a = _mix64(key)
-    b = _mix64(a + np.uint64(0x9E3779B97F4A7C15))
-    u1 = ((a >> np.uint64(11)) + np.uint64(1)) * (1.0 / 9007199254740993.0)  # (0, 1]
-    u2 = (b >> np.uint64(11)) * (1.0 / 9007199254740992.0)
-    return math.sqrt(-2.0 * math.log(u1)) * math.cos(2.0 * math.pi * u2)
+# random numbers: the counter-based generator of sim.forces.brownian (one scheme for every run)
+from sim.forces.brownian import counter_normal  # noqa: E402,F401  (re-exported: sim.dem.counter_normal)
 
 
 # --------------------------------------------------------------------------- force evaluation

@@ -33,9 +33,9 @@ Three integrators, each a numba kernel that advances all particles over
     for any dt when phi >= 1/2. Handles the piecewise drag law (Re > 1) and
     magnetic fields, which the exact update does not.
 
-Random numbers: numba's per-thread generator, seeded by
-:func:`sim.forces.brownian.seed_rng` in the same thread; with ``noise =
-False`` (T = 0) no random number is drawn.
+Random numbers: the counter-based :func:`sim.forces.brownian.counter_normal`
+keyed by (seed, step, particle and component), the scheme of the DEM engine
+too; with ``noise = False`` (T = 0) no random number is drawn.
 
 Boundaries (all kernels): ``modes`` (2, 3) int array from
 :attr:`sim.scene.Boundaries.modes`, lower faces in row 0 and upper faces in
@@ -53,7 +53,7 @@ from numba import njit
 
 from ptrack.errors import UserError
 from sim.forces.body import magnetic_force
-from sim.forces.brownian import brownian_sigma
+from sim.forces.brownian import brownian_sigma, counter_normal
 from sim.forces.drag import drag_factor, max_reynolds
 from sim.scene import PERIODIC, WALL
 
@@ -123,12 +123,13 @@ def ou_coefficients(a):
 # --------------------------------------------------------------------------- kernels
 @njit(cache=True, nogil=True)
 def ou_exact_kernel(pos, vel, radius, mass, gamma, fconst, vf, kT, dt, steps, nframes, box, modes,
-                    out_pos, out_vel, noise, i0, i1):
+                    out_pos, out_vel, noise, i0, i1, seed, step0):
     """Exact OU update of particles ``i0 <= i < i1``; frames stored in out_pos/out_vel (nframes, N, 3).
 
-    Particles are advanced one after the other over all frames, so calling the
-    kernel on consecutive particle blocks draws the same random numbers as one
-    call (the driver does this to return to Python in bounded wall time).
+    Random numbers: :func:`sim.forces.brownian.counter_normal` keyed by
+    (seed, step, index), steps counted from ``step0`` (the steps done before
+    this call), so a run split into calls over particle blocks or frames
+    draws the numbers of one call.
     """
     for i in range(i0, i1):
         tau = mass[i] / gamma[i]
@@ -143,12 +144,13 @@ def ou_exact_kernel(pos, vel, radius, mass, gamma, fconst, vf, kT, dt, steps, nf
         u2 = vf[2] + fconst[i, 2] / gamma[i]
         for f in range(nframes):
             for s in range(steps):
+                step = step0 + f * steps + s + 1
                 for k in range(3):
                     u = u0 if k == 0 else (u1 if k == 1 else u2)
                     dv = vel[i, k] - u
                     if noise:
-                        z1 = np.random.standard_normal()
-                        z2 = np.random.standard_normal()
+                        z1 = counter_normal(seed, step, 6 * i + 2 * k)
+                        z2 = counter_normal(seed, step, 6 * i + 2 * k + 1)
                         pos[i, k] += u * dt + dv * tau * em + cx * z1 + sx * z2
                         vel[i, k] = u + dv * e + sv * z1
                     else:
@@ -218,19 +220,20 @@ def _wall_lookup(x, u0, du, par, perp, dperp):
 
 @njit(cache=True, nogil=True)
 def overdamped_kernel(pos, vel, radius, gamma, fconst, vf, kT, dt, steps, nframes, box, modes,
-                      out_pos, out_vel, noise, hindered, u0, du, tpar, tperp, tdperp, i0, i1):
+                      out_pos, out_vel, noise, hindered, u0, du, tpar, tperp, tdperp, i0, i1, seed, step0):
     """Euler-Maruyama Brownian dynamics; ``vel`` receives the deterministic drift velocity.
 
     With ``hindered`` the mobility parallel / perpendicular to the z = 0 wall
     is scaled by the ratios of :mod:`ptrack.wall` at h / R (h = centre height,
     tabulated by :func:`wall_tables`) and the drift kB T dM_perp/dz dt is added.
-    Particles ``i0 <= i < i1`` (see :func:`ou_exact_kernel`).
+    Particles ``i0 <= i < i1``, random numbers keyed from ``step0`` (see :func:`ou_exact_kernel`).
     """
     for i in range(i0, i1):
         m0 = 1.0 / gamma[i]
         a = radius[i]
         for f in range(nframes):
             for s in range(steps):
+                step = step0 + f * steps + s + 1
                 mpar = m0
                 mperp = m0
                 drift = 0.0
@@ -245,10 +248,10 @@ def overdamped_kernel(pos, vel, radius, gamma, fconst, vf, kT, dt, steps, nframe
                     if k == 2:
                         v += drift
                     vel[i, k] = v
-                    step = v * dt
+                    dx = v * dt
                     if noise:
-                        step += math.sqrt(2.0 * kT * mk * dt) * np.random.standard_normal()
-                    pos[i, k] += step
+                        dx += math.sqrt(2.0 * kT * mk * dt) * counter_normal(seed, step, 3 * i + k)
+                    pos[i, k] += dx
                 _apply_boundaries(pos, vel, i, a, box, modes, False)
             for k in range(3):
                 out_pos[f, i, k] = pos[i, k]
@@ -269,7 +272,8 @@ def _drag_gamma(g0, stokes, radius, rho_f, mu, ux, uy, uz):
 
 @njit(cache=True, nogil=True)
 def trapezoidal_kernel(pos, vel, radius, mass, gamma, charge, fconst, vf, B, rho_f, mu, kT, dt,
-                       steps, nframes, box, modes, out_pos, out_vel, noise, phi, tol, max_iter, stokes, i0, i1):
+                       steps, nframes, box, modes, out_pos, out_vel, noise, phi, tol, max_iter, stokes, i0, i1,
+                       seed, step0):
     """Generalised trapezoidal rule (eq. 3.28-3.29). Returns the number of non-converged steps.
 
     ``fconst`` already holds q E and gravity; the drag (Stokes if ``stokes``,
@@ -277,7 +281,7 @@ def trapezoidal_kernel(pos, vel, radius, mass, gamma, charge, fconst, vf, B, rho
     (variance 2 gamma kT / dt with the Stokes gamma) is drawn once per step and
     held over it. (Fluctuation-dissipation is exact only for the linear,
     Stokes drag; at Re > 1 the thermal force is negligible against the drive.)
-    Particles ``i0 <= i < i1`` (see :func:`ou_exact_kernel`).
+    Particles ``i0 <= i < i1``, random numbers keyed from ``step0`` (see :func:`ou_exact_kernel`).
     """
     failures = 0
     v0 = np.empty(3)
@@ -292,9 +296,10 @@ def trapezoidal_kernel(pos, vel, radius, mass, gamma, charge, fconst, vf, B, rho
         sb = brownian_sigma(g0, kT, dt) if noise else 0.0
         for f in range(nframes):
             for s in range(steps):
+                step = step0 + f * steps + s + 1
                 for k in range(3):
                     v0[k] = vel[i, k]
-                    fb[k] = sb * np.random.standard_normal() if noise else 0.0
+                    fb[k] = sb * counter_normal(seed, step, 3 * i + k) if noise else 0.0
                 # force at the start of the step
                 ux = vf[0] - v0[0]
                 uy = vf[1] - v0[1]

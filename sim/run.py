@@ -30,7 +30,6 @@ import pandas as pd
 
 from ptrack.errors import UserError, atomic_output
 from ptrack.table import TrajectoryWriter
-from sim.forces.brownian import seed_rng
 from sim.forces.drag import max_reynolds
 from sim.integrate import (IntegratorChoice, _reynolds_at_balance, choose_integrator, ou_exact_kernel,
                            overdamped_kernel, trapezoidal_kernel, wall_tables)
@@ -82,7 +81,9 @@ class Stepper:
         self.failures = 0
         self.re_balance = float(np.max(_reynolds_at_balance(scene, state, self.fconst), initial=0.0))
         self.kernel_log: list[str] = []
-        seed_rng(numba_seed(scene.seed if seed is None else seed))
+        # key of the counter-based random numbers (sim.forces.brownian.counter_normal) and the steps done
+        self.rng_seed = numba_seed(scene.seed if seed is None else seed)
+        self.steps_done = 0
 
     def stokes_only(self) -> bool:
         """True if the drag stays in the Stokes branch (Re <= 1) now and at the force balance."""
@@ -115,14 +116,15 @@ class Stepper:
                         st.pos, st.vel, st.radius, st.mass, st.gamma, st.charge, self.fconst, self.vf, self.B,
                         self.scene.fluid.density, self.scene.fluid.viscosity, self.kT, c.dt, c.steps_per_output, 1,
                         self.box, self.modes, out_pos[f:f + 1], out_vel[f:f + 1], self.noise, c.phi,
-                        spec.tolerance, spec.max_iterations, stokes, i0, i1)
+                        spec.tolerance, spec.max_iterations, stokes, i0, i1, self.rng_seed,
+                        self.steps_done + f * c.steps_per_output)
                 self._blocks(call, c.steps_per_output, poll, chunker)
         else:
             if c.kind == "ou_exact":
                 def call(i0, i1):
                     ou_exact_kernel(st.pos, st.vel, st.radius, st.mass, st.gamma, self.fconst, self.vf, self.kT,
                                     c.dt, c.steps_per_output, nframes, self.box, self.modes, out_pos, out_vel,
-                                    self.noise, i0, i1)
+                                    self.noise, i0, i1, self.rng_seed, self.steps_done)
             else:
                 hindered = bool(self.scene.integrator.hindered_mobility)
                 tabs = wall_tables() if hindered else (0.0, 1.0, np.zeros(2), np.zeros(2), np.zeros(2))
@@ -130,9 +132,10 @@ class Stepper:
                 def call(i0, i1):
                     overdamped_kernel(st.pos, st.vel, st.radius, st.gamma, self.fconst, self.vf, self.kT, c.dt,
                                       c.steps_per_output, nframes, self.box, self.modes, out_pos, out_vel,
-                                      self.noise, hindered, *tabs, i0, i1)
+                                      self.noise, hindered, *tabs, i0, i1, self.rng_seed, self.steps_done)
             self._blocks(call, nframes * c.steps_per_output, poll, chunker)
         st.t += nframes * self.scene.time.output_interval
+        self.steps_done += nframes * c.steps_per_output
         return out_pos, out_vel
 
     def _blocks(self, call, steps, poll, chunker):

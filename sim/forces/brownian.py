@@ -5,8 +5,16 @@ zero mean and variance 2 gamma kB T / dt (gamma = 6 pi mu R), held constant
 over the step. This is what makes an inertial integrator reproduce
 D = kB T / gamma and m <v_i^2> = kB T; the seed's eq. 3.9 has no dt in it and
 its eq. 3.32 patches that with a hand-tuned t* = 7 ns, which is wrong except
-for one dt. Random numbers come from numba's per-thread generator, seeded by
-:func:`seed_rng` (same seed, same numbers on the same thread).
+for one dt.
+
+Random numbers: :func:`counter_normal`, a counter-based generator keyed by
+(seed, step, index) - the one scheme of every integrator (free-particle
+kernels, DEM, overdamped with pair forces). Same key, same number, whatever
+the order of evaluation, the threads or the split of a run into kernel calls,
+so a resumed run draws exactly the numbers of the uninterrupted one (numba's
+global generator state cannot be saved). :func:`seed_rng` and
+:func:`add_brownian` (numba's generator) remain for the hand tests of
+:mod:`sim.forces`.
 """
 from __future__ import annotations
 
@@ -14,6 +22,27 @@ import math
 
 import numpy as np
 from numba import njit
+
+
+@njit(cache=True, inline="always")
+def _mix64(z):
+    # splitmix64 finaliser on uint64
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+@njit(cache=True)
+def counter_normal(seed, step, index):
+    """Standard normal number keyed by (seed, step, index): same key, same number (Box-Muller on two
+    splitmix64 outputs)."""
+    key = np.uint64(seed) * np.uint64(0x9E3779B97F4A7C15) + np.uint64(step) * np.uint64(0xD1B54A32D192ED03) \
+        + np.uint64(index) * np.uint64(0x8CB92BA72F3D8DD7)
+    a = _mix64(key)
+    b = _mix64(a + np.uint64(0x9E3779B97F4A7C15))
+    u1 = ((a >> np.uint64(11)) + np.uint64(1)) * (1.0 / 9007199254740993.0)  # (0, 1]
+    u2 = (b >> np.uint64(11)) * (1.0 / 9007199254740992.0)
+    return math.sqrt(-2.0 * math.log(u1)) * math.cos(2.0 * math.pi * u2)
 
 
 @njit(cache=True)

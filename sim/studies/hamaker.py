@@ -32,28 +32,30 @@ import numpy as np
 from numba import njit
 
 from ptrack.constants import BOLTZMANN
+from sim.forces.brownian import counter_normal
 
 DEFAULTS = dict(radius=100e-9, zeta=-0.05, eps_r=80.0, viscosity=1.0e-3, temperature=293.0, debye_ratio=2.0,
                 height_radii=50.0, n_particles=100_000)
 
 
 @njit(cache=True, nogil=True)
-def _bd_stick(n, radius, height, v, D, dt, nsteps, seed):
-    """Heights of n non-interacting particles under drift -v (toward z = 0) and diffusion D.
+def _bd_stick(z, radius, height, v, D, dt, nsteps, seed):
+    """Heights ``z`` (m, start) of non-interacting particles under drift -v (toward z = 0) and diffusion D.
 
     Returns the deposition step of every particle (-1: never deposited).
     Reflecting top at ``height``; absorbing (sticking) plane at ``z = radius``.
+    The heights alone matter, so this is the overdamped update of the engine
+    reduced to z (one random number per particle and step instead of three),
+    with the engine's counter-based random numbers
+    (:func:`sim.forces.brownian.counter_normal`).
     """
-    np.random.seed(seed)
-    z = np.empty(n)
-    for i in range(n):
-        z[i] = radius + np.random.random() * (height - radius)
+    n = z.shape[0]
     dep = -np.ones(n, dtype=np.int64)
     s = math.sqrt(2.0 * D * dt)
     for i in range(n):
         zi = z[i]
         for k in range(nsteps):
-            zi += -v * dt + s * np.random.standard_normal()
+            zi += -v * dt + s * counter_normal(seed, k + 1, i)
             if zi > height:
                 zi = 2.0 * height - zi
             if zi <= radius:
@@ -82,7 +84,8 @@ def run_case(case: dict) -> dict:
     t_end = 0.8 * (H - R) / v_drift
     dt = min(0.02 * R / v_drift, 0.002 * R * R / D)
     nsteps = int(math.ceil(t_end / dt))
-    dep = _bd_stick(n, R, H, v_drift, D, dt, nsteps, int(case["seed"]))
+    z0 = R + np.random.default_rng(case["seed"]).random(n) * (H - R)
+    dep = _bd_stick(z0, R, H, v_drift, D, dt, nsteps, int(case["seed"]))
     c_s = n / (area * (H - R))
     t = np.linspace(0.0, nsteps * dt, 201)
     steps_done = dep[dep > 0]
