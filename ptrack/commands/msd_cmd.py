@@ -66,12 +66,9 @@ def _fmt(v, e):
     return f"{v:.4g} ± {e:.2g}" if e is not None and math.isfinite(e) else f"{v:.4g}"
 
 
-def run(args) -> int:
+def _check_args(args):
+    """Every option checked before the table is read: (axes, plot path or None)."""
     from .. import msd as M
-    from ..table import read_table
-
-    from ..motion.stokes import implausible_D_note
-    from ..motion.tracks import resolve_motion_blur
 
     axes = M.parse_axes(args.dims)
     if args.radius is not None:
@@ -95,7 +92,31 @@ def run(args) -> int:
     plot_path = None if args.no_plot else Path(args.plot) if args.plot else Path.cwd() / (Path(args.traj).stem + "_msd.png")
     if plot_path is not None and plot_path.suffix.lower() != ".png":
         raise UserError(f"plot path {plot_path} is not a .png file", "give a path ending in .png")
+    return axes, plot_path
 
+
+def _field_of_view(fov_arg, df):
+    """The ``field_of_view`` argument of the estimators from ``--field-of-view``, and where it came from."""
+    fov_source = "given"
+    if fov_arg is None:
+        # a camera sees a field: its edges cut tracks (-4.5 % on D for measured tracks if not corrected)
+        fov_arg = "auto" if "x_px" in df.columns else "none"
+        fov_source = ("default for a table from a camera (x_px columns)" if fov_arg == "auto"
+                      else "default for positions without image columns (simulations)")
+    fov = {"none": None, "auto": "auto"}.get(fov_arg.strip().lower())
+    if fov is None and fov_arg.strip().lower() != "none":
+        fov = tuple(c.strip() for c in fov_arg.split(",") if c.strip())
+    return fov, fov_source
+
+
+def run(args) -> int:
+    from .. import msd as M
+    from ..table import read_table
+
+    from ..motion.stokes import implausible_D_note
+    from ..motion.tracks import resolve_motion_blur
+
+    axes, plot_path = _check_args(args)
     df = read_table(args.traj)
     M_R, R_source = resolve_motion_blur(df, args.motion_blur)
     radius = args.radius
@@ -119,16 +140,7 @@ def run(args) -> int:
         used.attrs.update(df.attrs)
         if used.empty:
             raise UserError("every track is flagged as non-diffusive", "run without --exclude-flagged")
-    fov_arg = args.field_of_view
-    fov_source = "given"
-    if fov_arg is None:
-        # a camera sees a field: its edges cut tracks (-4.5 % on D for measured tracks if not corrected)
-        fov_arg = "auto" if "x_px" in df.columns else "none"
-        fov_source = ("default for a table from a camera (x_px columns)" if fov_arg == "auto"
-                      else "default for positions without image columns (simulations)")
-    fov = {"none": None, "auto": "auto"}.get(fov_arg.strip().lower())
-    if fov is None and fov_arg.strip().lower() != "none":
-        fov = tuple(c.strip() for c in fov_arg.split(",") if c.strip())
+    fov, fov_source = _field_of_view(args.field_of_view, df)
     res = M.estimate_diffusion(used, axes=axes, estimator=args.estimator, motion_blur=M_R, n_boot=args.n_boot,
                                seed=args.seed, subtract_drift=args.subtract_drift, max_lag=args.max_lag,
                                field_of_view=fov)
