@@ -255,7 +255,48 @@ def _maxima_snr(snr, thr, edge):
 
 
 @nb.njit(cache=True)
-def _suppress(rows, cols, scale, order, radius_factor, min_radius):
+def _ring_test(frame, bgmap, noise, sign, rows, cols, scale, out):
+    # an image with a hole: the annulus 0.7 s .. 2.2 s is brighter (polarity applied) than the core
+    # (<= 0.5 s) in every one of 8 sectors, beyond 3 noise standard errors, and no sector is below 40 %
+    # of the brightest. Two neighbouring spots seen together at a coarse scale have a dip between
+    # them too, but only two bright sectors; a ring has all eight.
+    h, w = frame.shape
+    for k in range(rows.shape[0]):
+        s = scale[k]
+        r0 = rows[k]
+        c0 = cols[k]
+        half = int(math.ceil(2.2 * s)) + 1
+        sec = np.zeros(8)
+        nsec = np.zeros(8)
+        core = 0.0
+        ncore = 0
+        for r in range(max(0, r0 - half), min(h, r0 + half + 1)):
+            for c in range(max(0, c0 - half), min(w, c0 + half + 1)):
+                d = math.sqrt((r - r0) ** 2 + (c - c0) ** 2)
+                v = sign * (frame[r, c] - bgmap[r, c])
+                if d <= max(0.5 * s, 1.0):
+                    core += v
+                    ncore += 1
+                elif 0.7 * s <= d <= 2.2 * s:
+                    a = int((math.atan2(r - r0, c - c0) + math.pi) / (2 * math.pi) * 8) % 8
+                    sec[a] += v
+                    nsec[a] += 1
+        if ncore == 0 or nsec.min() == 0:
+            out[k] = False
+            continue
+        core /= ncore
+        lo = 1e300
+        hi = -1e300
+        for a in range(8):
+            m = sec[a] / nsec[a]
+            lo = min(lo, m)
+            hi = max(hi, m)
+        se = noise[r0, c0] / math.sqrt(nsec.min())
+        out[k] = lo > core + 3.0 * se and lo > 0.4 * hi and hi > 0
+
+
+@nb.njit(cache=True)
+def _suppress(rows, cols, scale, order, radius_factor, min_radius, ring):
     # greedy non-maximum suppression in order of decreasing SNR. Candidates of clearly different scales
     # (more than 1.5x, i.e. beyond the next rung) within radius_factor x the larger scale are one image:
     # a finer one is a piece of a coarse image (a ring's necklace), a coarser one the blend of finer
@@ -273,7 +314,9 @@ def _suppress(rows, cols, scale, order, radius_factor, min_radius):
             j = kept[b]
             lo = min(scale[i], scale[j])
             hi = max(scale[i], scale[j])
-            if hi > 1.5 * lo:
+            if ring[j] and scale[i] <= scale[j]:
+                rad = max(radius_factor * scale[j], min_radius)     # anything inside a kept ring is the ring
+            elif hi > 1.5 * lo:
                 rad = max(radius_factor * hi, min_radius)
             else:
                 rad = max(1.18 * hi, min_radius)
@@ -327,6 +370,7 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         ``snr`` (best response, noise units), ``signal`` (band-passed height,
         counts, polarity applied), ``polarity`` (+1/-1), ``threshold`` (u),
         ``noise`` (median local noise of the finest scale, counts),
+        ``ring`` (bool: an image with a hole, e.g. a defocused ring),
         ``scales``, ``background_map`` and ``noise_map`` (the frame's local
         median and noise, counts, full size).
     """
@@ -401,11 +445,20 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         if len(rows) else np.zeros((len(scales), 0))
     size_k = np.argmax(amp, axis=0) if len(rows) else np.zeros(0, int)
     sc = np.asarray(scales)[size_k]
+    ring = np.zeros(len(rows), np.bool_)
+    coarse = np.nonzero(sc >= 2.0)[0]
+    if len(coarse):
+        fr = np.ascontiguousarray(frame, np.float32)
+        rflag = np.zeros(len(coarse), np.bool_)
+        _ring_test(fr, rb, rn, float(polarity), rows[coarse], cols[coarse], sc[coarse].astype(np.float64), rflag)
+        ring[coarse] = rflag
     if len(rows) > 1:
-        order = np.argsort(-z, kind="stable").astype(np.int64)
-        keep = _suppress(rows, cols, sc.astype(np.float64), order, float(suppress), 1.5)
-        rows, cols, sc, z, kk, amp = rows[keep], cols[keep], sc[keep], z[keep], kk[keep], amp[:, keep]
+        # rings first (their necklace of fine-scale maxima is often stronger than the ring's own response),
+        # then by decreasing SNR
+        order = np.lexsort((-z, ~ring)).astype(np.int64)
+        keep = _suppress(rows, cols, sc.astype(np.float64), order, float(suppress), 1.5, ring)
+        rows, cols, sc, z, kk, amp, ring = rows[keep], cols[keep], sc[keep], z[keep], kk[keep], amp[:, keep], ring[keep]
     sig = amp[kk, np.arange(len(rows))] if len(rows) else np.zeros(0)
     return {"rows": rows, "cols": cols, "scale": sc, "snr": z, "signal": np.asarray(sig, np.float64),
             "polarity": polarity, "threshold": float(u), "noise": float(noise0), "scales": scales,
-            "background_map": rb, "noise_map": rn}
+            "background_map": rb, "noise_map": rn, "ring": ring}

@@ -312,6 +312,7 @@ def _locate_multiscale(frame, snr=None, gain=1.0, offset=0.0, read_noise=0.0, br
     ring = np.zeros(n, np.bool_)
     if n:
         _ring_like(np.ascontiguousarray(sub, np.float32), rows, cols, scale.astype(np.float64), noise, ring)
+    ring |= det["ring"]
     if centre == "gauss":
         ring[:] = False
     elif centre == "radial":
