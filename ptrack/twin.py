@@ -382,7 +382,14 @@ def infer_parameters(table: pd.DataFrame, temperature: float, viscosity: float, 
     out["particles_per_frame"] = float(counts.median())
     if three_d:
         z = table["z"].to_numpy(float) - wall_z
-        first = table.loc[table.groupby("particle")["frame"].idxmin(), "z"].to_numpy(float) - wall_z
+        rows0 = table.loc[table.groupby("particle")["frame"].idxmin()]
+        first = rows0["z"].to_numpy(float) - wall_z
+        dz = (out.get("drift") or {}).get("z")
+        if dz and abs(dz["v"]) > 3 * dz["v_err"]:
+            # a track that starts late came into the measurable range by drifting: its particle started
+            # where the drift puts it at the movie's first frame (above the calibrated range if it drifts down)
+            first = first - dz["v"] * (rows0["t"].to_numpy(float) - float(table["t"].min()))
+            out["notes"].append("start heights of late tracks extrapolated back to the first frame along the drift")
         out["heights"] = {"z_min": float(np.nanmin(z)), "z_max": float(np.nanmax(z)),
                           "median": float(np.nanmedian(z)),
                           "start_p05": float(np.nanpercentile(first, 5)), "start_p95": float(np.nanpercentile(first, 95)),
