@@ -1,10 +1,11 @@
 """Load: peak memory against input size for a long movie and a large DEM run.
 
 1. Movie: a movie of N frames (48 x 48 px, 4 diffusing particles) is written
-   by ``sim.render.render_movie`` into a temporary folder and tracked with
-   ``ptrack.pipeline.track_movie``; N up to 10^4 frames. Peak memory should
-   not grow with the movie (frames are read and located one at a time; only
-   the localisations are kept).
+   by ``sim.render.render_movie`` into a temporary folder and tracked, in a
+   fresh process, with ``ptrack.pipeline.track_movie``, and side by side
+   with trackpy (``batch`` over the pages as a generator, then ``link``);
+   N up to 10^4 frames. Peak memory should not grow with the movie beyond
+   the localisations (frames are read and located one at a time).
 2. DEM: a scene of M spheres (dilute, DEM contacts on) is set up with
    ``sim.scene.scene_from_dict`` and stepped a few output frames with
    ``sim.run.run_scene``; M up to 10^6.
@@ -32,10 +33,10 @@ import time
 from pathlib import Path
 
 
-def child_movie(n_frames: int, folder: str) -> dict:
+def child_render(n_frames: int, folder: str) -> dict:
+    """Render the movie of ``n_frames`` into ``folder`` (a process of its own)."""
     import numpy as np
 
-    from ptrack.pipeline import track_movie
     from ptrack.table import make_table
     from sim import render
 
@@ -55,16 +56,47 @@ def child_movie(n_frames: int, folder: str) -> dict:
                      meta={"frame_interval": 0.01})
     t0 = time.perf_counter()
     info = render.render_movie(tab, folder, shape=(48, 48), camera=cam, seed=2, progress=False)
-    t_render = time.perf_counter() - t0
-    rss_render = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    del tab, x, y, steps, fr
+    return {"frames": n_frames, "movie_MB": os.path.getsize(info["movie"]) / 1e6, "render_s": time.perf_counter() - t0}
+
+
+def child_track(n_frames: int, folder: str) -> dict:
+    """ptrack.pipeline.track_movie on the rendered movie."""
+    from ptrack.pipeline import track_movie
+
     t0 = time.perf_counter()
-    table, summary = track_movie(info["movie"], out=Path(folder) / "t.parquet", diameter=4.0, search_range=3.0,
-                                 progress=False)
-    t_track = time.perf_counter() - t0
-    return {"frames": n_frames, "movie_MB": os.path.getsize(info["movie"]) / 1e6, "rows": len(table),
-            "tracks": int(table["particle"].nunique()), "render_s": t_render, "track_s": t_track,
-            "rss_after_render_MB": rss_render / 1024}
+    table, _ = track_movie(Path(folder) / "movie.tif", out=Path(folder) / "t.parquet", diameter=4.0,
+                           search_range=3.0, progress=False)
+    return {"rows": len(table), "tracks": int(table["particle"].nunique()), "track_s": time.perf_counter() - t0}
+
+
+def child_trackpy(n_frames: int, folder: str) -> dict:
+    """The peer: trackpy.batch over the TIFF pages (a generator: one frame at a time) + trackpy.link."""
+    import logging
+
+    import tifffile
+    import trackpy as tp
+
+    tp.quiet()
+    logging.getLogger("trackpy").setLevel(logging.ERROR)
+    t0 = time.perf_counter()
+    class Pages:  # a lazy sequence of frames: one page read at a time
+        def __init__(self, tf):
+            self.tf = tf
+
+        def __len__(self):
+            return len(self.tf.pages)
+
+        def __getitem__(self, i):
+            return self.tf.pages[i].asarray()
+
+        def __iter__(self):
+            return (self[i] for i in range(len(self)))
+
+    with tifffile.TiffFile(Path(folder) / "movie.tif") as tf:
+        f = tp.batch(Pages(tf), 5, minmass=200, processes=1)
+    t = tp.link(f, 3, memory=3)
+    t = tp.filter_stubs(t, 5)
+    return {"rows": len(t), "tracks": int(t["particle"].nunique()), "track_s": time.perf_counter() - t0}
 
 
 def child_dem(n_particles: int, folder: str) -> dict:
@@ -97,17 +129,22 @@ def child_dem(n_particles: int, folder: str) -> dict:
 
 
 def child_baseline(kind: str) -> dict:
-    if kind == "movie":
+    if kind == "track":
         import ptrack.pipeline  # noqa: F401
-        import sim.render  # noqa: F401
+    elif kind == "trackpy":
+        import tifffile  # noqa: F401
+        import trackpy  # noqa: F401
     else:
         import sim.run  # noqa: F401
         import sim.scene  # noqa: F401
     return {}
 
 
-def _child(kind: str, size: int) -> dict:
-    with tempfile.TemporaryDirectory(prefix="bench_load_") as tmp:
+def _child(kind: str, size: int, tmp: str | None = None) -> dict:
+    if tmp is None:
+        with tempfile.TemporaryDirectory(prefix="bench_load_") as tmp:
+            return _child(kind, size, tmp)
+    if True:
         code = ("import json, resource, sys; sys.path.insert(0, %r); import bench_load as b; "
                 "r = b.child_%s(%d, %r) if %d else b.child_baseline(%r); "
                 "r['peak_MB'] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024; print(json.dumps(r))"
@@ -134,19 +171,27 @@ def main() -> int:
     print(f"bench_load: each case in its own process, peak RSS; machine: {os.cpu_count()} cores, shared and loaded "
           f"(load average {os.getloadavg()[0]:.1f})\n")
     if frames:
-        base = _child("movie", 0)
-        print(f"movie: render (sim.render.render_movie) + track (ptrack.pipeline.track_movie), 48 x 48 px, "
-              f"4 particles; baseline (imports only) {base.get('peak_MB', float('nan')):.0f} MB")
-        print(f"{'frames':>7} {'movie MB':>9} {'rows':>7} {'tracks':>6} {'render s':>9} {'track s':>8} "
-              f"{'frames/s':>9} {'peak MB':>8} {'peak - base':>11}")
+        bases = {k: _child(k, 0).get("peak_MB", float("nan")) for k in ("track", "trackpy")}
+        print("movie (48 x 48 px, 4 particles) rendered by sim.render.render_movie, then tracked in a fresh process "
+              "by ptrack.pipeline.track_movie and, side by side, by trackpy (batch over the pages + link); "
+              f"baselines (imports only): ptrack {bases['track']:.0f} MB, trackpy {bases['trackpy']:.0f} MB")
+        print(f"{'frames':>7} {'movie MB':>9} {'render s':>9} {'tracker':>8} {'rows':>7} {'tracks':>6} {'s':>7} "
+              f"{'frames/s':>9} {'peak MB':>8} {'peak - base':>11} {'vs first':>9}")
+        first: dict = {}
         for n in frames:
-            r = _child("movie", n)
-            if "error" in r:
-                print(f"{n:>7} error: {r['error']}")
-                continue
-            print(f"{n:>7} {r['movie_MB']:>9.1f} {r['rows']:>7} {r['tracks']:>6} {r['render_s']:>9.1f} "
-                  f"{r['track_s']:>8.1f} {n / r['track_s']:>9.0f} {r['peak_MB']:>8.0f} "
-                  f"{r['peak_MB'] - base.get('peak_MB', 0):>11.0f}")
+            with tempfile.TemporaryDirectory(prefix="bench_load_") as tmp:
+                r0 = _child("render", n, tmp)
+                if "error" in r0:
+                    print(f"{n:>7} render error: {r0['error']}")
+                    continue
+                for kind, label in (("track", "ptrack"), ("trackpy", "trackpy")):
+                    r = _child(kind, n, tmp)
+                    if "error" in r:
+                        print(f"{n:>7} {label} error: {r['error']}")
+                        continue
+                    print(f"{n:>7} {r0['movie_MB']:>9.1f} {r0['render_s']:>9.1f} {label:>8} {r['rows']:>7} "
+                          f"{r['tracks']:>6} {r['track_s']:>7.1f} {n / r['track_s']:>9.0f} {r['peak_MB']:>8.0f} "
+                          f"{r['peak_MB'] - bases[kind]:>11.0f} {r['peak_MB'] - first.setdefault(kind, r['peak_MB']):>+9.0f}")
     if parts:
         base = _child("dem", 0)
         print(f"\nDEM: sim.scene.scene_from_dict + sim.run.run_scene, 3 steps (3 output frames), volume fraction 2 %, "
