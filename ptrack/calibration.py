@@ -511,6 +511,9 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
 
     K = len(tmpl)
     n = 2 * m + 1
+    if fine_margin is None and int(calib.info.get("n_sub", 1)) > 1:
+        fine_margin = 2         # interpolated templates: near the recorded page's best shift (see locate_3d)
+        coarse = max(int(coarse or 0), int(calib.info["n_sub"]))
     Hf, Wf = padded.shape[0] - 2 * pad, padded.shape[1] - 2 * pad
     # centres within 1 px of the frame (the padding holds the windows of those)
     ri = int(round(min(max(r, -1.0), Hf))) + pad

@@ -20,10 +20,12 @@ import numpy as np
 
 from ..errors import UserError
 
-# template half-side / 95 % light radius. 1.35: the 95 % radius is measured on the bead's own region (the old
-# whole-page rule, 1.2 x, counted positive noise far out and gave ~2 px larger in-focus templates, which the
-# matching thresholds were tuned for)
+# template half-side / 95 % light radius. Fluorescence 1.35: the 95 % radius is measured on the bead's own region
+# (the old whole-page rule, 1.2 x, counted positive noise far out and gave ~2 px larger in-focus templates, which
+# the matching thresholds were tuned for). Brightfield (signed) 1.2: its radius, on the magnitude of the signal,
+# comes out as before (1.35 made epd_brightfield's templates 2 px larger than the old ones, and z worse)
 TEMPLATE_SCALE = 1.35
+TEMPLATE_SCALE_SIGNED = 1.2
 
 __all__ = ["page_background", "find_beads", "bead_tracks", "cut_templates"]
 
@@ -328,7 +330,7 @@ def cut_templates(pages, tracks, z, signed: bool, template_size: int | None = No
             cy, cx = cyx[k]
             # each page its own square template sized to its image (TEMPLATE_SCALE x the 95 % radius, >= 7 px): a small
             # in-focus spot is not drowned in the noise of a window sized for the most defocused page
-            T = int(template_size) | 1 if template_size is not None else int(2 * math.ceil(max(TEMPLATE_SCALE * r95[k], 3.0)) + 1)
+            T = int(template_size) | 1 if template_size is not None else int(2 * math.ceil(max((TEMPLATE_SCALE_SIGNED if signed else TEMPLATE_SCALE) * r95[k], 3.0)) + 1)
             h = T // 2
             r0, c0 = int(round(cy)) - h, int(round(cx)) - h
             if tr[k]["edge"]:
