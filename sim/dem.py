@@ -893,8 +893,8 @@ def run_dem(scene, out_dir, resume=False, progress=True, checkpoint_every=None, 
 
     from ptrack.errors import UserError, atomic_output
     from sim.checkpoint import load_checkpoint, save_checkpoint, scene_fingerprint
-    from sim.driver import (InterruptGuard, SegmentedTable, WallClockChunker, discard_if_empty,
-                            prepare_out_dir)
+    from sim.driver import (InterruptGuard, Periodic, RunFailure, SegmentedTable, WallClockChunker,
+                            discard_if_empty, prepare_out_dir, run_frames)
 
     t_wall = time.perf_counter()
     inter = scene.interactions
@@ -961,78 +961,67 @@ def run_dem(scene, out_dir, resume=False, progress=True, checkpoint_every=None, 
                "n_builds": 0}
     chunker = WallClockChunker(first=max(1, 200_000 // max(system.n, 1)))
     guard = InterruptGuard()
-    try:
-        with guard:
-            table.open(frame + 1 if resume else 0)
-            if not resume:
-                table.append(_frame_df(0, system))
-            while frame < n_out:
-                t_next = (frame + 1) * dt_out
-                good = system.get_state()
-                good_dt = system.dt
-                tries = 0
-                while True:
-                    nsteps = max(1, int(round((t_next - system.t) / system.dt)))
-                    is_ck = ck_every > 0 and (frame + 1) % ck_every == 0
-                    status = system.run(nsteps, rebuild_at_end=is_ck, poll=guard.check, chunker=chunker)
-                    if status == OK:
-                        break
-                    bad_step, bad_p = system.step, system.fail_particle
-                    crit = critical_step(system.chunk_peaks[P_W2], system.chunk_peaks[P_DAMP])
-                    suggest = min(system.dt / 4.0, inter.dt_safety * crit)
-                    if fixed_dt or not inter.adaptive_dt or tries >= max_rollbacks:
-                        system.set_state(good)
-                        system.dt = good_dt
-                        np.savez(out_dir / "last_good_state.npz", **good)
-                        reason = STATUS_TEXT[status]
-                        table.finish(traj_path, meta, failed=f"blow-up at step {bad_step}: {reason}")
-                        if fixed_dt:
-                            fix = f"reduce time.dt to about {suggest:.2g} s or use time.dt = \"auto\""
-                        else:
-                            # dt is automatic already: advising "auto" would be circular
-                            fix = (f"the automatic dt ({good_dt:.3g} s, {tries} rollbacks) did not resolve it: lower "
-                                   f"contact.dt_safety (now {inter.dt_safety:g}), or check the stiffness, charges and "
-                                   "fields of the scene")
-                        raise UserError(
-                            f"DEM blow-up at step {bad_step} (t = {bad_step * good_dt:.6g} s): {reason}, particle "
-                            f"{bad_p} (dt = {good_dt:.3g} s); frames so far in {traj_path}, last good state in "
-                            f"{out_dir / 'last_good_state.npz'}", fix)
-                    # adaptive: roll back to the start of the frame and retry with a smaller step
-                    system.set_state(good)
-                    system.dt = min(good_dt, suggest) if tries == 0 else system.dt * 0.5
-                    tries += 1
-                    summary["rollbacks"] += 1
-                frame += 1
-                summary["max_overlap_ratio"] = max(summary["max_overlap_ratio"], float(system.chunk_peaks[P_OVERLAP]))
-                table.append(_frame_df(frame, system))
-                if is_ck:
-                    # the segment first (a complete file), then the checkpoint that lists it: a kill between
-                    # the two leaves a segment no checkpoint names, which the resume deletes
-                    names = table.commit()
-                    save_checkpoint(ck_path, system.get_state(), {"frame": frame, "fingerprint": fp,
-                                                                  "seed": scene.seed, "segments": names})
-                    if frame < n_out:
-                        table.open(frame + 1)
-                if not fixed_dt and inter.adaptive_dt:
-                    crit = critical_step(system.chunk_peaks[P_W2], system.chunk_peaks[P_DAMP])
-                    vmax = float(np.sqrt(np.max(np.sum(system.vel**2, axis=1)))) if system.n else 0.0
-                    # shrink when the contacts present are stiffer than the a-priori
-                    # estimate; never grow beyond it (new impacts come unannounced)
-                    target = min(inter.dt_safety * crit, 0.05 * float(np.min(system.radius)) / max(vmax, 1e-300), dt0)
-                    system.dt = float(min(target, 1.25 * system.dt))
-                summary["dt_min"] = min(summary["dt_min"], system.dt)
-                summary["dt_max"] = max(summary["dt_max"], system.dt)
-                bar.update(1)
-                guard.check()
-    except UserError:
-        raise
-    except BaseException as exc:
-        why_stop = f"interrupted ({exc})" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}"
-        table.finish(traj_path, meta, failed=why_stop)
-        raise
-    finally:
-        bar.close()
-    table.finish(traj_path, meta)
+    trigger = Periodic(ck_every)
+
+    def advance(frame, k):
+        """One output frame, with the dt policy: rollback and retry with a smaller dt on a blow-up
+        (adaptive dt), else stop with the last good state saved; afterwards adapt dt to the contacts."""
+        t_next = (frame + 1) * dt_out
+        good = system.get_state()
+        good_dt = system.dt
+        tries = 0
+        # the neighbour list is rebuilt at the end of checkpoint frames (in the resumed run too)
+        is_ck = trigger.ahead(frame + 1)
+        while True:
+            nsteps = max(1, int(round((t_next - system.t) / system.dt)))
+            status = system.run(nsteps, rebuild_at_end=is_ck, poll=guard.check, chunker=chunker)
+            if status == OK:
+                break
+            bad_step, bad_p = system.step, system.fail_particle
+            crit = critical_step(system.chunk_peaks[P_W2], system.chunk_peaks[P_DAMP])
+            suggest = min(system.dt / 4.0, inter.dt_safety * crit)
+            if fixed_dt or not inter.adaptive_dt or tries >= max_rollbacks:
+                system.set_state(good)
+                system.dt = good_dt
+                np.savez(out_dir / "last_good_state.npz", **good)
+                reason = STATUS_TEXT[status]
+                if fixed_dt:
+                    fix = f"reduce time.dt to about {suggest:.2g} s or use time.dt = \"auto\""
+                else:
+                    # dt is automatic already: advising "auto" would be circular
+                    fix = (f"the automatic dt ({good_dt:.3g} s, {tries} rollbacks) did not resolve it: lower "
+                           f"contact.dt_safety (now {inter.dt_safety:g}), or check the stiffness, charges and "
+                           "fields of the scene")
+                err = UserError(
+                    f"DEM blow-up at step {bad_step} (t = {bad_step * good_dt:.6g} s): {reason}, particle "
+                    f"{bad_p} (dt = {good_dt:.3g} s); frames so far in {traj_path}, last good state in "
+                    f"{out_dir / 'last_good_state.npz'}", fix)
+                raise RunFailure(f"blow-up at step {bad_step}: {reason}", err)
+            # adaptive: roll back to the start of the frame and retry with a smaller step
+            system.set_state(good)
+            system.dt = min(good_dt, suggest) if tries == 0 else system.dt * 0.5
+            tries += 1
+            summary["rollbacks"] += 1
+        summary["max_overlap_ratio"] = max(summary["max_overlap_ratio"], float(system.chunk_peaks[P_OVERLAP]))
+        df = _frame_df(frame + 1, system)
+        if not fixed_dt and inter.adaptive_dt:
+            crit = critical_step(system.chunk_peaks[P_W2], system.chunk_peaks[P_DAMP])
+            vmax = float(np.sqrt(np.max(np.sum(system.vel**2, axis=1)))) if system.n else 0.0
+            # shrink when the contacts present are stiffer than the a-priori
+            # estimate; never grow beyond it (new impacts come unannounced)
+            target = min(inter.dt_safety * crit, 0.05 * float(np.min(system.radius)) / max(vmax, 1e-300), dt0)
+            system.dt = float(min(target, 1.25 * system.dt))
+        summary["dt_min"] = min(summary["dt_min"], system.dt)
+        summary["dt_max"] = max(summary["dt_max"], system.dt)
+        return df, 1
+
+    def checkpoint(frame, names):
+        save_checkpoint(ck_path, system.get_state(), {"frame": frame, "fingerprint": fp, "seed": scene.seed,
+                                                      "segments": names})
+
+    run_frames(table=table, traj_path=traj_path, meta=meta, frame=frame, n_out=n_out, advance=advance,
+               first=None if resume else _frame_df(0, system), checkpoint=checkpoint, trigger=trigger,
+               guard=guard, bar=bar)
     wall = time.perf_counter() - t_wall
     summary.update({"steps": int(system.step), "wall_time_s": wall, "n_frames": n_out + 1, "dt_final": system.dt,
                     "n_builds": int(system.n_builds), "resumed_from_step": resumed_from,

@@ -236,3 +236,117 @@ class SegmentedTable:
         else:
             shutil.rmtree(self.dir, ignore_errors=True)
         return Path(path)
+
+
+# --------------------------------------------------------------------------- the frame loop
+class Periodic:
+    """Trigger: every ``every`` output frames (0 = never). Deterministic, as the DEM engine needs
+    (it rebuilds its neighbour list at checkpoint frames so a resume is bit-identical)."""
+
+    def __init__(self, every: int):
+        self.every = int(every)
+
+    def __call__(self, frame: int) -> bool:
+        return self.every > 0 and frame % self.every == 0
+
+    def ahead(self, frame: int) -> bool:
+        """Whether the trigger fires at ``frame`` (known before the frame is computed)."""
+        return self(frame)
+
+
+class WallClock:
+    """Trigger: at the first frame at least ``seconds`` of wall time after the last firing (for
+    runs whose state does not depend on where checkpoints fall, e.g. free particles)."""
+
+    def __init__(self, seconds: float):
+        self.seconds = float(seconds)
+        self._last = time.monotonic()
+
+    def __call__(self, frame: int) -> bool:
+        now = time.monotonic()
+        if now - self._last >= self.seconds:
+            self._last = now
+            return True
+        return False
+
+
+class RunFailure(Exception):
+    """Raised by an ``advance`` callback of :func:`run_frames`: the run cannot go on.
+
+    ``frames``: a table chunk of the frames that are still good (or None);
+    ``reason``: recorded in the table as why it is incomplete; ``error``: the
+    :class:`ptrack.errors.UserError` to raise once the table is written.
+    """
+
+    def __init__(self, reason: str, error: Exception, frames=None):
+        super().__init__(reason)
+        self.reason = reason
+        self.error = error
+        self.frames = frames
+
+
+def run_frames(*, table: SegmentedTable, traj_path, meta: dict, frame: int, n_out: int, advance, first=None,
+               checkpoint=None, trigger=None, guard: InterruptGuard, bar=None, group: int = 1) -> int:
+    """The one frame loop of every run (free particles and DEM).
+
+    Parameters
+    ----------
+    table, traj_path, meta
+        The segmented table and where :meth:`SegmentedTable.finish` writes it.
+    frame, n_out
+        The last frame already in the table (0 for a new run, whose frame 0 is
+        ``first``) and the last frame of the run.
+    advance : callable
+        ``advance(frame, k) -> (df, k_done)``: compute up to ``k`` frames after
+        ``frame`` and return their table chunk; raises :class:`RunFailure`.
+    checkpoint : callable, optional
+        ``checkpoint(frame, segment_names)``: save the state after ``frame``
+        (called after the table segment is committed, so the two belong
+        together), when ``trigger(frame)`` fires.
+    guard : InterruptGuard
+        Checked after every chunk (the callbacks poll it inside long chunks).
+    group : int
+        Frames per ``advance`` call.
+
+    Returns
+    -------
+    int : the last frame written.
+
+    Raises
+    ------
+    UserError
+        From a :class:`RunFailure` (after the table is written, marked incomplete).
+    KeyboardInterrupt
+        SIGINT/SIGTERM: the table holds the frames done, marked incomplete; the
+        committed segments stay for a resume.
+    """
+    try:
+        with guard:
+            table.open(0 if first is not None else frame + 1)
+            if first is not None:
+                table.append(first)
+            while frame < n_out:
+                df, k = advance(frame, min(group, n_out - frame))
+                table.append(df)
+                frame += k
+                if bar is not None:
+                    bar.update(k)
+                if checkpoint is not None and trigger is not None and trigger(frame):
+                    checkpoint(frame, table.commit())
+                    if frame < n_out:
+                        table.open(frame + 1)
+                guard.check()
+    except RunFailure as f:
+        if f.frames is not None and len(f.frames):
+            table.append(f.frames)
+        table.finish(traj_path, meta, failed=f.reason)
+        raise f.error from None
+    except BaseException as exc:
+        why = f"interrupted ({exc})" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}"
+        table.finish(traj_path, meta, failed=why)
+        raise
+    finally:
+        if bar is not None:
+            bar.close()
+    table.finish(traj_path, meta)
+    return frame
