@@ -75,7 +75,7 @@ def kill_table(suite: tf.Suite) -> list:
         out.append({"kill": name, "codes": r["codes"], "frames": None if got is None else got["frame"].nunique(),
                     "of": ref["frame"].nunique(), "identical": same,
                     "incomplete": None if got is None else got.attrs["ptrack"].get("incomplete"),
-                    "seconds": r["seconds"]})
+                    "seconds": r["seconds"], "stderr": r["stderr"]})
     return out
 
 
@@ -111,7 +111,8 @@ def main() -> int:
         print(f"{'kill':<14} {'exit codes':<22} {'frames':>7} {'identical':>10} {'marked incomplete':>18} {'s':>6}")
         for k in kills:
             print(f"{k['kill']:<14} {str(k['codes']):<22} {str(k['frames']) + '/' + str(k['of']):>7} "
-                  f"{str(k['identical']):>10} {str(bool(k['incomplete'])):>18} {k['seconds']:>6.1f}")
+                  f"{str(k['identical']):>10} {str(bool(k['incomplete'])):>18} {k['seconds']:>6.1f}"
+                  + (f"  final resume: {k['stderr'][0][:120]}" if k["codes"][-1] != 0 and k["stderr"] else ""))
     print(f"\ntotal wall time {time.perf_counter() - t0:.0f} s")
     return 0
 
