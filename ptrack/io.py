@@ -274,7 +274,56 @@ def _tiff_calibration(tif, page):
     return px, dt, info
 
 
-def _open_tiff(path: Path, allow_float: bool, series_index: int = 0):
+_TIME_AXES = "TIQ"      # time, generic image sequence, unknown pages: frames of the movie
+
+
+def _frame_index(axes: str, shape: tuple, channel: int | None, plane: int | None, what: str):
+    """Frames of a stack read by its axes: (n_frames, function frame -> flat page index).
+
+    The leading axes (all but Y, X) are time-like (T, I, Q), Z (focal planes) or C (channels).
+    Without a time-like axis longer than 1, Z is the frame axis (ImageJ saves a plain stack as
+    slices). With both time and Z (or C) longer than 1 the planes (channels) are not frames: one
+    is chosen by ``plane`` (``channel``), or the stack is refused as ambiguous.
+    """
+    lead = list(zip(axes[:-2], shape[:-2]))
+    sizes = {a: n for a, n in lead}
+    t_axes = [a for a, n in lead if a in _TIME_AXES and n > 1]
+    if len(t_axes) > 1:
+        raise UserError(f"{what} has several time-like axes {axes} {shape}", "re-export it as one time series")
+    frame_axis = t_axes[0] if t_axes else ("Z" if sizes.get("Z", 1) > 1 else None)
+    pick = {}
+    for ax, opt, name in (("C", channel, "channel"), ("Z", plane, "plane")):
+        n = sizes.get(ax, 1)
+        if ax == frame_axis:
+            if opt is not None and ax == "Z":
+                raise UserError(f"--plane given but {what} has no time axis besides Z (axes {axes})",
+                                "omit --plane: the Z slices are the frames")
+            continue
+        if n > 1 and opt is None:
+            hint = "--channel N" if ax == "C" else "--plane N"
+            raise UserError(f"{what} is a hyperstack (axes {axes}, shape {shape}) with {n} "
+                            f"{'channels' if ax == 'C' else 'focal planes'}: which one is ambiguous",
+                            f"choose one with {hint} (0..{n - 1})")
+        if opt is not None and not 0 <= int(opt) < n:
+            raise UserError(f"{name} {opt} is outside 0..{n - 1} of {what} (axes {axes})", f"give a {name} in 0..{n - 1}")
+        pick[ax] = int(opt or 0)
+    for a, n in lead:
+        if a not in "CZ" and a != frame_axis and n > 1:
+            raise UserError(f"{what} has an axis {a} of length {n} (axes {axes}) that is not time, Z or channel",
+                            "re-export the movie as a time series of 2D frames")
+    lead_shape = tuple(n for _, n in lead) or (1,)
+    n_frames = sizes.get(frame_axis, 1) if frame_axis else 1
+
+    def index(i):
+        if not lead:
+            return 0
+        idx = tuple(i if a == frame_axis else pick.get(a, 0) for a, _ in lead)
+        return int(np.ravel_multi_index(idx, lead_shape))
+    return int(n_frames), index
+
+
+def _open_tiff(path: Path, allow_float: bool, series_index: int | None = None, channel: int | None = None,
+               plane: int | None = None):
     import tifffile
 
     size = path.stat().st_size
@@ -287,10 +336,28 @@ def _open_tiff(path: Path, allow_float: bool, series_index: int = 0):
         try:
             if not tif.series:
                 raise UserError(f"{path} contains no readable image (corrupt, or not a movie)", "give an uncorrupted TIFF movie")
-            series = tif.series[series_index]
+            if series_index is None:
+                stacks = [k for k, sr in enumerate(tif.series) if len(sr.shape) >= 2 and min(sr.shape[-2:]) > 1
+                          and getattr(sr, "kind", "") not in ("thumbnail",)]
+                if len(stacks) > 1 and getattr(tif, "is_ome", False):       # several OME positions
+                    raise UserError(f"{path} holds {len(stacks)} image series (positions) of shapes "
+                                    f"{[tuple(tif.series[k].shape) for k in stacks][:4]}",
+                                    "choose one with --series N")
+                series_index = 0
+            if not 0 <= int(series_index) < len(tif.series):
+                raise UserError(f"series {series_index} is outside 0..{len(tif.series) - 1} of {path}",
+                                f"give --series in 0..{len(tif.series) - 1}")
+            series = tif.series[int(series_index)]
             page = series.pages[0] if series.pages else tif.pages[0]
             shape, axes = tuple(series.shape), series.axes
             problems = [m for m in log.messages if re.search(r"corrupt|truncat|invalid|incomplete|not enough|missing", m, re.I)]
+            if problems and all("imagej series metadata invalid" in m.lower() for m in problems) and \
+                    len({tuple(pg.shape) for pg in tif.pages}) == 1:
+                # tifffile could not place tiny ImageJ pages (e.g. 1x1 px) into a hyperstack: the file is
+                # fine, its pages are the frames
+                problems = []
+                shape, axes = (len(tif.pages),) + tuple(tif.pages[0].shape), "I" + "YX"
+                series = None
         except UserError:
             tif.close()
             raise
@@ -309,18 +376,17 @@ def _open_tiff(path: Path, allow_float: bool, series_index: int = 0):
             # an ImageJ stack written without axes metadata comes back as "CYX"; ImageJ composites
             # have at most 7 channels, so a longer C axis is a stack of frames
             axes = axes.replace("C", "Z")
-        if "C" in axes and shape[axes.index("C")] > 1:
-            raise UserError(f"{what} has {shape[axes.index('C')]} channels (axes {axes})",
-                            "split the channels and give one (ImageJ: Image > Color > Split Channels)")
-        dtype = _check_dtype(series.dtype, what, allow_float)
+        dtype = _check_dtype(series.dtype if series is not None else tif.pages[0].dtype, what, allow_float)
         if axes[-2:] != "YX" and len(shape) >= 2 and not axes.endswith("X"):
             raise UserError(f"{what} has unexpected axes {axes}", "give a stack of 2D grayscale frames")
         frame_shape = shape[-2:]
-        n_frames = int(np.prod(shape[:-2])) if len(shape) > 2 else 1
-        expected_bytes = n_frames * int(np.prod(frame_shape)) * dtype.itemsize
+        n_pages = int(np.prod(shape[:-2])) if len(shape) > 2 else 1
+        # frames by the axes: a TZYX / TCYX hyperstack is not T*Z frames
+        n_frames, page_of = _frame_index(axes, shape, channel, plane, what)
+        expected_bytes = n_pages * int(np.prod(frame_shape)) * dtype.itemsize
         px, dt, info = _tiff_calibration(tif, page)
         info["axes"] = axes
-        offset = series.dataoffset
+        offset = series.dataoffset if series is not None else None
         reader = None
         memmapped = False
         closer_fd = None
@@ -340,7 +406,7 @@ def _open_tiff(path: Path, allow_float: bool, series_index: int = 0):
 
             def reader(i, fd=fd):
                 a = np.empty(tuple(frame_shape), fdtype)
-                got = os.preadv(fd, [memoryview(a).cast("B")], offset + i * frame_bytes)
+                got = os.preadv(fd, [memoryview(a).cast("B")], offset + page_of(i) * frame_bytes)
                 if got != frame_bytes:
                     raise UserError(f"{path}: frame {i} is truncated", "re-copy or re-export the complete file")
                 return a if fdtype.isnative else a.astype(fdtype.newbyteorder("="))
@@ -348,9 +414,9 @@ def _open_tiff(path: Path, allow_float: bool, series_index: int = 0):
             closer_fd = fd
         else:
             # compressed / tiled / scattered strips: decode page by page
-            pages = series.pages
-            if len(pages) != n_frames:
-                raise UserError(f"{path}: {len(pages)} image pages for {n_frames} frames",
+            pages = series.pages if series is not None else tif.pages
+            if len(pages) != n_pages:
+                raise UserError(f"{path}: {len(pages)} image pages for {n_pages} planes",
                                 "the file is corrupt or truncated; re-export it")
             for p in pages:
                 if p is None:
@@ -361,7 +427,7 @@ def _open_tiff(path: Path, allow_float: bool, series_index: int = 0):
                                     "re-copy or re-export the complete file")
 
             def reader(i, pages=pages):
-                return pages[i].asarray()
+                return pages[page_of(i)].asarray()
     except BaseException:
         tif.close()
         raise
@@ -414,7 +480,8 @@ def _open_sequence(files: list[Path], source: str, allow_float: bool):
 
 
 def open_movie(path, pixel_size: float | None = None, frame_interval: float | None = None,
-               allow_float: bool = False) -> Movie:
+               allow_float: bool = False, channel: int | None = None, plane: int | None = None,
+               series: int | None = None) -> Movie:
     """Open a movie for frame-by-frame reading.
 
     Parameters
@@ -428,6 +495,13 @@ def open_movie(path, pixel_size: float | None = None, frame_interval: float | No
         s between frames; overrides the metadata.
     allow_float : bool
         Accept floating-point images (refused by default).
+    channel, plane : int, optional
+        TCYX / TZYX hyperstacks are read by their axes (frames along T):
+        the channel (C) or focal plane (Z) to read; a stack with several
+        of them and no choice is refused as ambiguous. A stack with Z and no
+        time axis is a time series of slices (ImageJ's plain stack).
+    series : int, optional
+        Image series (e.g. OME positions) of a multi-series file.
 
     Returns
     -------
@@ -454,7 +528,8 @@ def open_movie(path, pixel_size: float | None = None, frame_interval: float | No
         if not files:
             raise UserError(f"folder {p} holds no .tif/.tiff/.png images", "give a movie file or a folder of frames")
         if len(files) == 1:
-            movie = _open_tiff(files[0], allow_float) if files[0].suffix.lower() != ".png" else _open_sequence(files, s, allow_float)
+            movie = _open_tiff(files[0], allow_float, series, channel, plane) if files[0].suffix.lower() != ".png" \
+                else _open_sequence(files, s, allow_float)
         else:
             movie = _open_sequence(files, s, allow_float)
     else:
@@ -465,7 +540,7 @@ def open_movie(path, pixel_size: float | None = None, frame_interval: float | No
         if p.suffix.lower() == ".png":
             movie = _open_sequence([p], s, allow_float)
         else:
-            movie = _open_tiff(p, allow_float)
+            movie = _open_tiff(p, allow_float, series, channel, plane)
     if pixel_size is not None:
         movie.pixel_size = check_positive("pixel size", pixel_size)
     if frame_interval is not None:

@@ -78,6 +78,9 @@ def locate_movie(movie, brightfield: bool | None = None, diameter: float | None 
     from .locate import diameter_to_sigma, locate, sigma_to_diameter
     from .preprocess import prepare, temporal_background
 
+    if min(movie.shape) < 8:
+        raise UserError(f"{movie.source}: frames of {movie.shape[0]}x{movie.shape[1]} px are too small to hold a "
+                        "particle image", "give the movie itself (frames of at least 8x8 px)")
     check_not_blank(movie)
     n = len(movie)
     frames = range(n) if frames is None else list(frames)
@@ -177,6 +180,7 @@ def track_movie(movie, out=None, pixel_size: float | None = None, frame_interval
                 brightfield: bool | None = None, diameter: float | None = None, search_range: float | None = None,
                 memory: int = 3, min_length: int = 5, snr: float | None = None, gain: float = 1.0, offset: float = 0.0,
                 read_noise: float = 0.0, background: str = "spatial", cm_min: float = 0.5,
+                channel: int | None = None, plane: int | None = None, series: int | None = None,
                 progress: bool = True) -> tuple[pd.DataFrame, dict]:
     """Movie -> trajectories table.
 
@@ -197,6 +201,8 @@ def track_movie(movie, out=None, pixel_size: float | None = None, frame_interval
         Frames a particle may be missed.
     min_length : int
         Shortest trajectory kept (frames).
+    channel, plane, series : int, optional
+        Hyperstack channel, focal plane and image series (:func:`ptrack.io.open_movie`).
     Others : see :func:`locate_movie`.
 
     Returns
@@ -215,7 +221,8 @@ def track_movie(movie, out=None, pixel_size: float | None = None, frame_interval
     from .table import UNITS, write_table
 
     t0 = time.perf_counter()
-    with open_movie(movie, pixel_size=pixel_size, frame_interval=frame_interval) as mv:
+    with open_movie(movie, pixel_size=pixel_size, frame_interval=frame_interval, channel=channel, plane=plane,
+                    series=series) as mv:
         mv.require_calibration()
         px, dt = mv.pixel_size, mv.frame_interval
         cal = None

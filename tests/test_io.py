@@ -174,3 +174,28 @@ def test_trackpy_table_round_trip_and_features_to_si_table():
         to_trajectories(feats.drop(columns="particle"), 2e-7, 0.1)
     with pytest.raises(UserError):
         from_trackpy(f, -1.0, 0.1)
+
+
+def test_hyperstacks_read_by_their_axes(tmp_path):
+    """TZYX / TCYX: frames along T, the plane or channel by option; ambiguous stacks refused; a plain
+    ImageJ Z stack is a time series; tiny ImageJ pages are not called corrupt."""
+    rng = np.random.default_rng(0)
+    a = rng.integers(0, 1000, (4, 3, 16, 16)).astype(np.uint16)
+    tifffile.imwrite(tmp_path / "tzyx.tif", a, imagej=True, metadata={"axes": "TZYX"})
+    tifffile.imwrite(tmp_path / "tcyx.tif", a[:, :2], imagej=True, metadata={"axes": "TCYX"})
+    tifffile.imwrite(tmp_path / "zyx.tif", a[0], imagej=True, metadata={"axes": "ZYX"})
+    with pytest.raises(UserError, match="--plane"):
+        open_movie(tmp_path / "tzyx.tif")
+    with open_movie(tmp_path / "tzyx.tif", plane=2) as m:
+        assert len(m) == 4 and all((m[i] == a[i, 2]).all() for i in range(4))
+    with pytest.raises(UserError, match="--channel"):
+        open_movie(tmp_path / "tcyx.tif")
+    with open_movie(tmp_path / "tcyx.tif", channel=1) as m:
+        assert len(m) == 4 and (m[3] == a[3, 1]).all()
+    with pytest.raises(UserError, match="outside"):
+        open_movie(tmp_path / "tcyx.tif", channel=2)
+    with open_movie(tmp_path / "zyx.tif") as m:
+        assert len(m) == 3 and (m[1] == a[0, 1]).all()
+    tifffile.imwrite(tmp_path / "tiny.tif", np.ones((5, 1, 1), np.uint16), imagej=True, metadata={"axes": "TYX"})
+    with open_movie(tmp_path / "tiny.tif") as m:         # tifffile cannot place the pages; the file is fine
+        assert m.shape[0] * m.shape[1] * len(m) == 5

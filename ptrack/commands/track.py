@@ -32,6 +32,9 @@ def add_track_arguments(p: argparse.ArgumentParser) -> None:
                      help="dark particles on a bright field (default: polarity decided from the data and printed)")
     pol.add_argument("--fluorescence", dest="brightfield", action="store_const", const=False,
                      help="bright particles on a dark field")
+    g.add_argument("--channel", metavar="N", type=_index, help="channel of a TCYX hyperstack (0-based)")
+    g.add_argument("--plane", metavar="N", type=_index, help="focal plane of a TZYX hyperstack (0-based)")
+    g.add_argument("--series", metavar="N", type=_index, help="image series of a multi-series (OME) file (0-based)")
     g.add_argument("--pixel-size", metavar="M", type=float, help="m per pixel in the sample (overrides metadata)")
     g.add_argument("--frame-interval", metavar="S", type=float, help="s between frames (overrides metadata)")
     g.add_argument("--diameter", metavar="PX", type=float,
@@ -49,27 +52,27 @@ def add_track_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--min-length", type=int, default=5, help="shortest trajectory kept, frames (default 5)")
 
 
-def _finite(name, v, positive=True, allow_zero=False):
-    import math
+def _index(text: str) -> int:  # argparse names it "index" in its message
+    """A 0-based index option (--channel, --plane, --series): a whole number >= 0.
 
-    if v is None:
-        return v
-    ok = math.isfinite(v) and (v > 0 or (allow_zero and v == 0) or not positive)
-    if not ok:
-        need = "a finite number" if not positive else ("0 or more" if allow_zero else "a positive number")
-        raise UserError(f"{name} {v} is not {need}", f"give {name} as {need}")
+    (Parsed here rather than as ``type=int`` because ptrack.options has no entry for these yet; the
+    lead may move them there as ``whole(0, ...)``.)
+    """
+    try:
+        v = int(text)
+    except ValueError:
+        raise UserError(f"{text!r} is not a whole number", "give a 0-based index such as 0") from None
+    if v < 0:
+        raise UserError(f"index {v} is negative", "give a 0-based index such as 0")
     return v
 
 
+_index.__name__ = "0-based index"
+
+
 def track_kwargs(args) -> dict:
-    _finite("--snr", args.snr)
-    _finite("--search-range", args.search_range)
-    _finite("--diameter", args.diameter)
-    _finite("--gain", args.gain)
-    _finite("--offset", args.offset, positive=False)
-    _finite("--read-noise", args.read_noise, allow_zero=True)
-    _finite("--pixel-size", args.pixel_size)
-    _finite("--frame-interval", args.frame_interval)
+    # the numeric ranges (--snr nan, --search-range=-5, --gain 0 ...) are checked once for every command
+    # by ptrack.options before this runs
     if args.memory < 0:
         raise UserError(f"--memory {args.memory} is negative", "give 0 or more frames")
     if args.min_length < 2:
@@ -80,7 +83,8 @@ def track_kwargs(args) -> dict:
                 calib_z=args.calib_z, calib_step=args.calib_step, calib_z0=args.calib_z0,
                 brightfield=args.brightfield, diameter=args.diameter, search_range=args.search_range,
                 memory=args.memory, min_length=args.min_length, snr=args.snr, gain=args.gain, offset=args.offset,
-                read_noise=args.read_noise, background=args.background, cm_min=args.cm_min)
+                read_noise=args.read_noise, background=args.background, cm_min=args.cm_min,
+                channel=args.channel, plane=args.plane, series=args.series)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
