@@ -59,6 +59,9 @@ def test_motion_blur_from_the_data_when_the_table_has_the_localisers_sigma(R):
     bare = df.drop(columns=["sigma_x", "sigma_y"])
     bare.attrs = {}
     assert resolve_motion_blur(bare)[1].startswith("default")
+    # simulated positions (and the ground truth of a rendered movie) are instantaneous: R = 0, not 1/6
+    bare.attrs = {"ptrack": {"source": "sim.render ground truth", "frame_interval": DT}}
+    assert resolve_motion_blur(bare) == (0.0, "metadata: simulated positions are instantaneous")
 
 
 def test_one_motion_blur_range_for_every_estimator():

@@ -247,8 +247,9 @@ def resolve_motion_blur(df: pd.DataFrame, motion_blur=None) -> tuple[float, str]
     """The motion-blur parameter R to use for a table, and where it came from.
 
     In this order: ``motion_blur`` if given; the table's metadata
-    (``motion_blur``, or ``exposure`` / ``frame_interval`` / 6 for a uniform
-    exposure); the data, when the table carries the localiser's precision
+    (``motion_blur``; 0 for simulated positions, ``source`` starting with
+    "sim", which are instantaneous; or ``exposure`` / ``frame_interval`` / 6
+    for a uniform exposure); the data, when the table carries the localiser's precision
     (``sigma_x``, ``sigma_y`` in m): the CVE's localisation variance
     ``sigma^2 = R <dx^2> + (2R - 1) <dx_n dx_n+1>`` solved for R with that
     sigma; else 1/6 (a shutter open the whole frame), said so.
@@ -273,6 +274,10 @@ def resolve_motion_blur(df: pd.DataFrame, motion_blur=None) -> tuple[float, str]
             return check_motion_blur(meta["motion_blur"]), "metadata: motion_blur"
         except UserError:
             pass
+    src = str(meta.get("source", ""))
+    if meta.get("kind") == "simulated" or (src.startswith("sim") and "render_movie" not in src):
+        # simulated positions and the ground truth of rendered movies are sampled at instants
+        return 0.0, "metadata: simulated positions are instantaneous"
     if meta.get("exposure") and meta.get("frame_interval"):
         R = float(meta["exposure"]) / float(meta["frame_interval"]) / 6.0
         if math.isfinite(R) and 0 <= R <= 1 / 6 + 1e-9:
