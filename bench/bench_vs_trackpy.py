@@ -193,7 +193,8 @@ def part3(quick, d, mm):
         table, t = grid_truth(n, (size, size), spacing, rng, margin=16, px=px)
         frames = list(render.render_frames(table, shape=(size, size), camera=cam, seed=size))
         if size == 256:
-            _ours_locate_link(frames[:2], cam)      # compile / warm up
+            _ours_locate_link(frames[:2], cam)      # compile / warm up, both
+            _trackpy_locate_link(frames[:2], d, mm, 5.0)
         feats, linked, tl, tk = _ours_locate_link(frames, cam)
         rm, _, rec, prec = score(feats[["x_px", "y_px"]].to_numpy(), t, n, feats["frame"].to_numpy())
         sr = linked.attrs["link"]["search_range_px"]

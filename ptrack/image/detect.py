@@ -89,7 +89,7 @@ def _blur_ladder(work, sigmas):
     return out
 
 
-def noise_maps(img, tile: int = 32, step: int = 2, what: str = "both", shape=None):
+def noise_maps(img, tile: int = 64, step: int = 2, what: str = "both", shape=None):
     """Local background (median) and noise (1.4826 MAD) of an image over tiles, interpolated to full size.
 
     Parameters
@@ -197,36 +197,47 @@ def false_alarm_threshold(scales, rate: float = FALSE_ALARM_RATE) -> float:
 
 
 @nb.njit(cache=True)
-def _update_best(b1, b2, inv, sign, index, best, arg):
-    # z = sign (b1 - b2) / noise at every pixel, kept where it beats the best so far (one pass, no
-    # full-frame temporaries: the band-passed image itself is never stored). inv is the tile grid of
-    # 1 / noise, interpolated bilinearly here between tile centres (as cv2.resize INTER_LINEAR would)
+def _best_over_scales(b1s, b2s, invs, sign, best, arg):
+    # z_i = sign (b1_i - b2_i) / noise_i for every scale i in one pass over the frame, keeping the best
+    # and its scale index (no full-frame band-passed or SNR image is stored). invs[i] is the tile grid of
+    # 1 / noise of scale i, interpolated bilinearly between tile centres (as cv2.resize INTER_LINEAR)
     h, w = best.shape
-    gh, gw = inv.shape
-    fy = gh / h
-    fx = gw / w
-    x0 = np.empty(w, np.int64)
-    x1 = np.empty(w, np.int64)
-    wx = np.empty(w)
-    for c in range(w):
-        xx = min(max((c + 0.5) * fx - 0.5, 0.0), gw - 1.0)
-        x0[c] = min(int(xx), gw - 1)
-        x1[c] = min(x0[c] + 1, gw - 1)
-        wx[c] = xx - x0[c]
-    rowv = np.empty(gw)
-    for r in range(h):
-        yy = min(max((r + 0.5) * fy - 0.5, 0.0), gh - 1.0)
-        y0 = min(int(yy), gh - 1)
-        y1 = min(y0 + 1, gh - 1)
-        wy = yy - y0
-        for j in range(gw):
-            rowv[j] = (1 - wy) * inv[y0, j] + wy * inv[y1, j]
+    ns = len(b1s)
+    gwmax = 1
+    for i in range(ns):
+        gwmax = max(gwmax, invs[i].shape[1])
+    x0 = np.empty((ns, w), np.int64)
+    x1 = np.empty((ns, w), np.int64)
+    wx = np.empty((ns, w))
+    for i in range(ns):
+        gw = invs[i].shape[1]
+        fx = gw / w
         for c in range(w):
-            iv = (1 - wx[c]) * rowv[x0[c]] + wx[c] * rowv[x1[c]]
-            z = sign * (b1[r, c] - b2[r, c]) * iv
-            if z > best[r, c]:
-                best[r, c] = z
-                arg[r, c] = index
+            xx = min(max((c + 0.5) * fx - 0.5, 0.0), gw - 1.0)
+            x0[i, c] = min(int(xx), gw - 1)
+            x1[i, c] = min(x0[i, c] + 1, gw - 1)
+            wx[i, c] = xx - x0[i, c]
+    rowv = np.empty((ns, gwmax))
+    for r in range(h):
+        for i in range(ns):
+            gh, gw = invs[i].shape
+            yy = min(max((r + 0.5) * gh / h - 0.5, 0.0), gh - 1.0)
+            y0 = min(int(yy), gh - 1)
+            y1 = min(y0 + 1, gh - 1)
+            wy = yy - y0
+            for j in range(gw):
+                rowv[i, j] = (1 - wy) * invs[i][y0, j] + wy * invs[i][y1, j]
+        for c in range(w):
+            bz = -np.inf
+            bk = 0
+            for i in range(ns):
+                iv = (1 - wx[i, c]) * rowv[i, x0[i, c]] + wx[i, c] * rowv[i, x1[i, c]]
+                z = sign * (b1s[i][r, c] - b2s[i][r, c]) * iv
+                if z > bz:
+                    bz = z
+                    bk = i
+            best[r, c] = bz
+            arg[r, c] = bk
 
 
 @nb.njit(cache=True)
@@ -333,7 +344,7 @@ def _suppress(rows, cols, scale, order, radius_factor, min_radius, ring):
 
 
 def detect(frame, scales=None, polarity: int | None = None, snr: float | None = None,
-           rate: float = FALSE_ALARM_RATE, median: bool = True, tile: int = 32, edge: int = 2,
+           rate: float = FALSE_ALARM_RATE, median: bool = True, tile: int = 48, edge: int = 2,
            suppress: float = 2.0, offset: float = 0.0):
     """Detect particles of several sizes without tuning knobs.
 
@@ -353,7 +364,9 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
     median : bool
         3x3 median first (hot pixels, salt noise).
     tile : int
-        Noise-map tile (px); at least 12x the scale.
+        Noise-map tile (px); at least 12x the scale (and at most ~256 tiles
+        per frame). Illumination varies slowly on this scale; a finer map
+        only adds sampling scatter to the noise estimate.
     edge : int
         Ignore maxima closer than this to the border (px).
     suppress : float
@@ -403,11 +416,14 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
             noise0 = float(1.0 / np.median(inv))
         invs.append(inv)
 
+    b1s = tuple(np.ascontiguousarray(blurs[s], np.float32) for s in scales)
+    b2s = tuple(np.ascontiguousarray(blurs[_SURROUND * s], np.float32) for s in scales)
+    invs = tuple(invs)
+
     def best_map(sign):
-        best = np.full((H, W), -np.inf, np.float32)
-        arg = np.zeros((H, W), np.int8)
-        for i, s in enumerate(scales):
-            _update_best(blurs[s], blurs[_SURROUND * s], invs[i], float(sign), i, best, arg)
+        best = np.empty((H, W), np.float32)
+        arg = np.empty((H, W), np.int8)
+        _best_over_scales(b1s, b2s, invs, float(sign), best, arg)
         return best, arg
 
     if polarity is None:
