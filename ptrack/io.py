@@ -350,6 +350,7 @@ def _open_tiff(path: Path, allow_float: bool, series_index: int | None = None, c
             series = tif.series[int(series_index)]
             page = series.pages[0] if series.pages else tif.pages[0]
             shape, axes = tuple(series.shape), series.axes
+            len(tif.pages)      # walks the IFD chain: a file cut short loses its trailing IFDs (tifffile logs it)
             problems = [m for m in log.messages if re.search(r"corrupt|truncat|invalid|incomplete|not enough|missing", m, re.I)]
             if problems and all("imagej series metadata invalid" in m.lower() for m in problems) and \
                     len({tuple(pg.shape) for pg in tif.pages}) == 1:

@@ -332,7 +332,7 @@ def track_many(movies, out_dir=None, scheduler: str | None = None, n_workers: in
     cluster = None
     if scheduler:
         try:
-            client = Client(scheduler, timeout="5s")
+            client = Client(scheduler, timeout="2s")     # a refused connection is retried until then
         except (OSError, TimeoutError) as exc:
             raise UserError(f"cannot reach the dask scheduler at {scheduler} ({type(exc).__name__})",
                             "start it (dask scheduler) or omit --scheduler for a local cluster") from None

@@ -15,7 +15,7 @@ import json
 import sys
 from pathlib import Path
 
-from ..errors import UserError, atomic_output
+from ..errors import UserError, atomic_output, check_writable
 
 
 def add_track_arguments(p: argparse.ArgumentParser) -> None:
@@ -97,17 +97,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, help="local worker processes for several movies (default: one per core)")
 
 
-def _check_writable(out: Path) -> None:
-    """Refuse an output whose folder cannot be written, before any work."""
-    import os
-
-    d = Path(out).resolve().parent
-    if not d.exists():
-        raise UserError(f"the output folder {d} does not exist", "create it or give another --out")
-    if not os.access(d, os.W_OK):
-        raise UserError(f"the output folder {d} is not writable", "give a writable --out")
-
-
 def run(args) -> int:
     from ..pipeline import default_output, track_many, track_movie
 
@@ -116,7 +105,9 @@ def run(args) -> int:
         out = Path(args.out) if args.out else default_output(args.movies[0])
         if out.is_dir():
             out = default_output(args.movies[0], out)
-        _check_writable(out)
+        check_writable(out, "--out")
+        if args.json:
+            check_writable(args.json, "--json")
         _, summary = track_movie(args.movies[0], out=out, **kw)
         if summary.get("polarity_from") == "data":
             print(f"image polarity from the data: {summary['polarity']} "
@@ -128,6 +119,10 @@ def run(args) -> int:
         if args.out and Path(args.out).suffix.lower() in (".parquet", ".csv"):
             raise UserError(f"--out {args.out} is a file but {len(args.movies)} movies were given",
                             "give a directory for --out (one <stem>.traj.parquet per movie)")
+        if args.out:
+            check_writable(args.out, "--out", directory=True)
+        if args.json:
+            check_writable(args.json, "--json")
         results = track_many(args.movies, out_dir=args.out, scheduler=args.scheduler, n_workers=args.workers, **kw)
         for r in results:
             if "error" in r:
