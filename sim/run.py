@@ -29,11 +29,11 @@ import numpy as np
 import pandas as pd
 
 from ptrack.errors import UserError, atomic_output
-from ptrack.table import TrajectoryWriter
 from sim.forces.drag import max_reynolds
 from sim.integrate import (IntegratorChoice, _reynolds_at_balance, choose_integrator, ou_exact_kernel,
                            overdamped_kernel, trapezoidal_kernel, wall_tables)
-from sim.driver import InterruptGuard, WallClockChunker, discard_if_empty, prepare_out_dir
+from sim.driver import (SEGMENT_DIR, InterruptGuard, RunFailure, SegmentedTable, WallClock, WallClockChunker,
+                        discard_if_empty, prepare_out_dir, run_frames)
 from sim.scene import Scene
 from sim.state import State, build_state, constant_force
 
@@ -205,7 +205,7 @@ def _write_state(path: Path, state: State, t: float) -> None:
 
 
 def run_scene(scene: Scene, out_dir, seed=None, progress: bool = True, resume: bool = False,
-              max_rows_per_chunk: int = 1_000_000) -> RunResult:
+              max_rows_per_chunk: int = 1_000_000, checkpoint_seconds: float = 30.0) -> RunResult:
     """Run a scene and stream its trajectories to ``out_dir/trajectories.parquet``.
 
     Parameters
@@ -219,10 +219,16 @@ def run_scene(scene: Scene, out_dir, seed=None, progress: bool = True, resume: b
     progress : bool
         tqdm progress bar on stderr.
     resume : bool
-        Continue a DEM run from its checkpoint; refused (UserError) for
-        free-particle runs, which do not checkpoint.
+        Continue from ``out_dir/checkpoint.npz``: the table equals the
+        uninterrupted run's, frame for frame. Refused at once (nothing
+        written) without a checkpoint, or when the checkpoint, its table
+        segments and the scene (with its seed) do not belong together.
     max_rows_per_chunk : int
         Rows buffered before a chunk is appended to the Parquet file.
+    checkpoint_seconds : float
+        Free-particle runs: a checkpoint (with its committed table segment) at
+        the first chunk of frames after this much wall time (DEM runs: every
+        ``contact.checkpoint_every`` frames).
 
     Returns
     -------
@@ -247,10 +253,18 @@ def run_scene(scene: Scene, out_dir, seed=None, progress: bool = True, resume: b
     if scene.interactions is not None and getattr(scene.interactions, "any_pair_force", False):
         from sim.dem import run_dem
         return run_dem(scene, out_dir, resume=resume, progress=progress)
+    from sim.checkpoint import load_checkpoint, save_checkpoint, scene_fingerprint
+
+    traj_path = out_dir / "trajectories.parquet"
+    ck_path = out_dir / "checkpoint.npz"
+    scene_json = out_dir / "scene.json"
+    fp = scene_fingerprint(scene.to_dict())  # covers the seed
     if resume:
-        raise UserError("--resume applies to DEM runs (scenes with pair forces), which checkpoint; "
-                        "this free-particle scene has no checkpoint",
-                        "run it again without --resume (free-particle runs are fast and deterministic for a seed)")
+        # refused at once, before any work or any write
+        ck_data, ck_head = load_checkpoint(ck_path, fp)
+        if not (out_dir / SEGMENT_DIR).is_dir():
+            raise UserError(f"{out_dir} has a checkpoint but no committed table segments (the run finished)",
+                            "rerun without --resume")
 
     t0 = time.perf_counter()
     # everything that can refuse the run comes before anything is written
@@ -259,75 +273,79 @@ def run_scene(scene: Scene, out_dir, seed=None, progress: bool = True, resume: b
     choice = choose_integrator(scene, state, fconst)
     n_out = int(round(scene.time.final / scene.time.output_interval))
     check_cost(state.n, n_out, choice)
-    created = prepare_out_dir(out_dir)
     resolved = {"scene": scene.to_dict(), "integrator": choice.to_dict(), "n_output_frames": n_out + 1,
                 "gravity_note": "gravity with buoyancy is on unless [gravity] enabled = false",
                 "units": "SI"}
-    scene_json = out_dir / "scene.json"
-    try:
-        with atomic_output(scene_json, "w") as fh:
-            json.dump(resolved, fh, indent=2, default=float)
-    except BaseException:
-        discard_if_empty(out_dir, created)
-        raise
-    traj_path = out_dir / "trajectories.parquet"
     meta = {"source": "sim", "frame_interval": scene.time.output_interval, "scene": scene.source,
-            "integrator": choice.kind, "dt": choice.dt, "integrator_reason": choice.reason, "seed": scene.seed}
+            "integrator": choice.kind, "dt": choice.dt, "integrator_reason": choice.reason, "seed": scene.seed,
+            "run": fp}
     stepper = Stepper(scene, state, fconst, choice)
+    frame = 0
+    if resume:
+        table = SegmentedTable(out_dir, meta, committed=ck_head.get("segments", []))
+        frame = int(ck_head["frame"])
+        table.check_committed(fp, frame)
+        state.pos = np.ascontiguousarray(ck_data["pos"])
+        state.vel = np.ascontiguousarray(ck_data["vel"])
+        state.t = float(ck_data["t"])
+        stepper.steps_done = int(ck_data["steps_done"])
+        stepper.failures = int(ck_data["failures"])
+    else:
+        created = prepare_out_dir(out_dir)
+        try:
+            table = SegmentedTable(out_dir, meta)
+        except BaseException:
+            discard_if_empty(out_dir, created)
+            raise
+    with atomic_output(scene_json, "w") as fh:
+        json.dump(resolved, fh, indent=2, default=float)
     n = state.n
     # frames per kernel call: bounded by the rows per Parquet chunk and by ~2e7 particle-steps (progress bar)
     group = max(1, min(n_out, max_rows_per_chunk // max(n, 1), int(2e7 // max(n * choice.steps_per_output, 1))))
     buf_pos = np.empty((group, n, 3))
     buf_vel = np.empty((group, n, 3))
     dt_out = scene.time.output_interval
-    writer = TrajectoryWriter(traj_path, meta)
     from tqdm import tqdm
-    bar = tqdm(total=n_out, desc="simulate", unit="frame", disable=not progress, file=sys.stderr)
+    bar = tqdm(total=n_out, initial=frame, desc="simulate", unit="frame", disable=not progress, file=sys.stderr)
     guard = InterruptGuard()
     chunker = WallClockChunker(first=1_000_000)
-    try:
-        with guard:
-            writer.append(_frame_table(np.array([0]), np.array([0.0]), state.pos[None], state.vel[None],
-                                       state.radius))
-            done = 0
-            while done < n_out:
-                g = min(group, n_out - done)
-                good = state.copy()
-                stepper.advance(g, buf_pos[:g], buf_vel[:g], poll=guard.check, chunker=chunker)
-                ok = np.isfinite(buf_pos[:g]).all(axis=(1, 2)) & np.isfinite(buf_vel[:g]).all(axis=(1, 2))
-                if not ok.all():
-                    nbad = int(np.argmin(ok))
-                    if nbad > 0:
-                        frames = np.arange(done + 1, done + 1 + nbad)
-                        writer.append(_frame_table(frames, frames * dt_out, buf_pos[:nbad], buf_vel[:nbad],
-                                                   state.radius))
-                        good.pos = buf_pos[nbad - 1].copy()
-                        good.vel = buf_vel[nbad - 1].copy()
-                    t_good = (done + nbad) * dt_out
-                    _write_state(out_dir / "last_good_state.npz", good, t_good)
-                    t_bad = (done + nbad + 1) * dt_out
-                    reason = f"non-finite positions/velocities by t = {t_bad:.6g} s"
-                    writer.close(failed=reason)
-                    raise UserError(
-                        f"simulation stopped: {reason} (integrator {choice.kind}, dt = {choice.dt:.3g} s); "
-                        f"frames up to t = {t_good:.6g} s are in {traj_path}, last good state in "
-                        f"{out_dir / 'last_good_state.npz'}",
-                        "reduce time.dt or check the forces and parameters of the scene")
-                frames = np.arange(done + 1, done + 1 + g)
-                writer.append(_frame_table(frames, frames * dt_out, buf_pos[:g], buf_vel[:g], state.radius))
-                done += g
-                bar.update(g)
-                guard.check()
-    except UserError:
-        raise
-    except BaseException as exc:
-        # an interrupt inside a group: the frames of earlier groups are complete and kept
-        why = f"interrupted ({exc})" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}"
-        writer.close(failed=why)
-        raise
-    finally:
-        bar.close()
-    writer.close()
+
+    def advance(done, g):
+        good = state.copy()
+        stepper.advance(g, buf_pos[:g], buf_vel[:g], poll=guard.check, chunker=chunker)
+        ok = np.isfinite(buf_pos[:g]).all(axis=(1, 2)) & np.isfinite(buf_vel[:g]).all(axis=(1, 2))
+        if not ok.all():
+            nbad = int(np.argmin(ok))
+            part = None
+            if nbad > 0:
+                frames = np.arange(done + 1, done + 1 + nbad)
+                part = _frame_table(frames, frames * dt_out, buf_pos[:nbad], buf_vel[:nbad], state.radius)
+                good.pos = buf_pos[nbad - 1].copy()
+                good.vel = buf_vel[nbad - 1].copy()
+            t_good = (done + nbad) * dt_out
+            _write_state(out_dir / "last_good_state.npz", good, t_good)
+            t_bad = (done + nbad + 1) * dt_out
+            reason = f"non-finite positions/velocities by t = {t_bad:.6g} s"
+            raise RunFailure(reason, UserError(
+                f"simulation stopped: {reason} (integrator {choice.kind}, dt = {choice.dt:.3g} s); "
+                f"frames up to t = {t_good:.6g} s are in {traj_path}, last good state in "
+                f"{out_dir / 'last_good_state.npz'}",
+                "reduce time.dt or check the forces and parameters of the scene"), frames=part)
+        frames = np.arange(done + 1, done + 1 + g)
+        return _frame_table(frames, frames * dt_out, buf_pos[:g], buf_vel[:g], state.radius), g
+
+    def checkpoint(done, names):
+        # free particles: the state is positions, velocities, time and the step counter (the random
+        # numbers are keyed by it), so checkpoints may fall anywhere without changing the run
+        save_checkpoint(ck_path, {"pos": state.pos, "vel": state.vel, "t": np.float64(state.t),
+                                  "steps_done": np.int64(stepper.steps_done), "failures": np.int64(stepper.failures)},
+                        {"frame": done, "fingerprint": fp, "seed": scene.seed, "segments": names})
+
+    first = None if resume else _frame_table(np.array([0]), np.array([0.0]), state.pos[None], state.vel[None],
+                                             state.radius)
+    run_frames(table=table, traj_path=traj_path, meta=meta, frame=frame, n_out=n_out, advance=advance,
+               first=first, checkpoint=checkpoint, trigger=WallClock(checkpoint_seconds), guard=guard, bar=bar,
+               group=group)
     if stepper.failures:
         log.warning("trapezoidal fixed-point iteration did not converge in %d steps", stepper.failures)
     resolved["run"] = {"wall_time_s": time.perf_counter() - t0, "fixed_point_failures": stepper.failures,

@@ -4,6 +4,11 @@ Writes DIR/trajectories.parquet (frame, t, particle, x, y, z, vx, vy, vz,
 radius; SI units) and DIR/scene.json (the resolved scene, the chosen
 integrator, dt and why). Free particles use the exact OU, overdamped or
 trapezoidal integrator; scenes with pair forces run on the DEM engine.
+Every run checkpoints (the table is committed in segments with each
+checkpoint), so after a kill ``--resume`` continues and ends with every frame
+of an uninterrupted run; Ctrl-C or SIGTERM stop within about a second (exit
+130) keeping the frames done. A folder holding an earlier run has it moved
+into ``previous-N/``.
 """
 from __future__ import annotations
 
@@ -16,7 +21,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene", help="scene TOML file (see scenes/*.toml)")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--seed", type=int, default=None, help="override the scene's seed")
-    p.add_argument("--resume", action="store_true", help="resume a DEM run from its checkpoint")
+    p.add_argument("--resume", action="store_true",
+                   help="continue an interrupted run from its checkpoint (same scene and seed); the table ends "
+                        "with every frame of an uninterrupted run")
     p.add_argument("--quiet", action="store_true", help="no progress bar or log lines")
 
 
