@@ -344,7 +344,7 @@ def _suppress(rows, cols, scale, order, radius_factor, min_radius, ring):
 
 
 def detect(frame, scales=None, polarity: int | None = None, snr: float | None = None,
-           rate: float = FALSE_ALARM_RATE, median: bool = True, tile: int = 48, edge: int = 2,
+           rate: float = FALSE_ALARM_RATE, median: bool = True, tile: int = 32, edge: int = 2,
            suppress: float = 2.0, offset: float = 0.0):
     """Detect particles of several sizes without tuning knobs.
 
@@ -364,7 +364,7 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
     median : bool
         3x3 median first (hot pixels, salt noise).
     tile : int
-        Noise-map tile (px); at least 12x the scale (and at most ~256 tiles
+        Noise-map tile (px, default 32); at least 12x the scale (and at most ~256 tiles
         per frame). Illumination varies slowly on this scale; a finer map
         only adds sampling scatter to the noise estimate.
     edge : int
