@@ -643,3 +643,29 @@ def test_coherent_field_phase_is_relative_to_the_illumination():
     np.testing.assert_allclose(a0, a0[0], rtol=1e-6, atol=1e-9 * abs(a0[0]))
     # and the image does not repeat after lambda / n (it did, exactly, with the absolute phase)
     assert np.abs(re[2] - re[0]).max() > 0.05 * np.abs(re[0]).max()
+
+
+def test_impossible_patch_and_undetermined_frame_interval_are_user_errors(tmp_path):
+    """Astigmatism given in waves (0.5, read as 0.5 m) is refused before any allocation; a multi-frame table whose
+    t does not increase has no frame interval (no silent 1 s); the default calibration page holds the image or warns."""
+    from ptrack.errors import UserError
+    from sim.render.calibration import page_shape_for, render_calibration
+    from sim.render.movie import frame_interval_of
+    from sim.render.optics import patch_size, sample_pixel_size
+
+    o = Optics(astigmatism=0.5)
+    with pytest.raises(UserError, match="astigmatism"):
+        patch_size(o, sample_pixel_size(o, Camera().pixel_pitch), 60e-6)
+    with pytest.raises(UserError, match="astigmatism"):
+        render_calibration(tmp_path / "a", -2e-6, 2e-6, 1e-6, optics=o, progress=False)
+    assert not (tmp_path / "a" / "calib.tif").exists()
+    bad = pd.DataFrame({"frame": [0, 1, 2], "t": [0.0, 0.0, 0.0], "particle": 0, "x": 0.0, "y": 0.0, "z": 0.0})
+    with pytest.raises(UserError, match="frame interval"):
+        frame_interval_of(bad)
+    with pytest.warns(UserWarning, match="single-frame"):
+        assert frame_interval_of(bad.iloc[:1]) == 1.0
+    z = np.arange(-10e-6, 10.0001e-6, 2e-6)
+    H, W = page_shape_for(z, Optics(), Camera())
+    assert 140 < H == W <= 512          # +-10 um at NA 0.75 in water: the ring is ~160 px across
+    with pytest.warns(UserWarning, match="cut the particle image beyond"):
+        page_shape_for(z, Optics(), Camera(), shape=(64, 64))

@@ -67,8 +67,16 @@ def run(a) -> int:
     for k in pages:
         s = truth[truth["frame"] == k]
         overlay.append((s["x_px"].to_numpy(), s["y_px"].to_numpy()))
-    png = save_montage(preview_pages(paths["movie"], pages), [f"frame {k}" for k in pages], out / "preview.png",
-                       overlay=overlay, title="rendered frames; red circles: ground truth")
+    # particles in one part of a large frame: preview that part, not a frame with the particles in a corner
+    from sim.render.options import crop_box
+
+    sel = truth[truth["frame"].isin(pages)]
+    r0, r1, c0, c1 = crop_box(sel["x_px"].to_numpy(), sel["y_px"].to_numpy(), shape)
+    imgs = [im[r0:r1, c0:c1] for im in preview_pages(paths["movie"], pages)]
+    overlay = [(x - c0, y - r0) for x, y in overlay]
+    where = "" if (r1 - r0, c1 - c0) == tuple(shape) else f" (rows {r0}-{r1 - 1}, columns {c0}-{c1 - 1})"
+    png = save_montage(imgs, [f"frame {k}" for k in pages], out / "preview.png",
+                       overlay=overlay, title=f"rendered frames{where}; red circles: ground truth")
     print(f"rendered {nf} frames of {shape[0]} x {shape[1]} px ({px * 1e9:.1f} nm/px, {params['frame_interval']:g} s/frame)")
     for k, v in paths.items():
         print(f"  {k}: {v}")

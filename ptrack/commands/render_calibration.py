@@ -19,7 +19,8 @@ def add_arguments(p):
     p.add_argument("--z-range", type=float, nargs=2, metavar=("ZMIN", "ZMAX"), default=(-60e-6, 60e-6),
                    help="lowest and highest particle height, m (default -6e-5 6e-5)")
     p.add_argument("--z-step", type=float, default=2e-6, help="height step, m (default 2e-6)")
-    p.add_argument("--shape", type=int, nargs=2, metavar=("H", "W"), default=(64, 64), help="page height and width, pixels (default 64 64)")
+    p.add_argument("--shape", type=int, nargs=2, metavar=("H", "W"), default=None,
+                   help="page height and width, pixels (default: holds the image at the largest defocus, up to 512)")
     p.add_argument("--focal-plane", type=float, default=0.0, metavar="Z", help="height of the focal plane, m (default 0)")
     add_optics_camera_arguments(p)
 
@@ -30,14 +31,19 @@ def run(a) -> int:
 
     out = check_out_dir(a.out)
     optics, camera = optics_camera_from_args(a)
-    paths = render_calibration(out, a.z_range[0], a.z_range[1], a.z_step, shape=tuple(a.shape), optics=optics,
+    paths = render_calibration(out, a.z_range[0], a.z_range[1], a.z_step, shape=tuple(a.shape) if a.shape else None, optics=optics,
                                camera=camera, focal_plane=a.focal_plane, radius=a.radius or 0.0,
                                brightfield=brightfield_from_args(a), seed=a.seed, compression="zlib" if a.compress else None,
                                scatter_phase=a.scatter_phase)
     z = np.loadtxt(paths["z"], delimiter=",", skiprows=1)[:, 1].reshape(-1)
-    pages = spread_indices(len(z), 12)
-    png = save_montage(preview_pages(paths["stack"], pages), [f"z = {z[k] * 1e6:+.2f} um" for k in pages],
-                       out / "calib_montage.png", title="calibration stack (z in um)")
+    pages = spread_indices(len(z), 12, include=int(np.argmin(np.abs(z - a.focal_plane))))
+    imgs = preview_pages(paths["stack"], pages)
+    # large pages: show the middle, where the particle is, at a size the montage can show (the largest image fits)
+    H, W = imgs[0].shape
+    h = min(H, W, 256) // 2
+    imgs = [im[H // 2 - h:H // 2 + h, W // 2 - h:W // 2 + h] for im in imgs]
+    png = save_montage(imgs, [f"z = {z[k] * 1e6:+.2f} um" for k in pages], out / "calib_montage.png",
+                       title=f"calibration stack (z in um; central {2 * h} x {2 * h} px, smoothed)", smooth=True)
     print(f"rendered {len(z)} calibration planes from {z[0] * 1e6:+.2f} to {z[-1] * 1e6:+.2f} um")
     for k, v in paths.items():
         print(f"  {k}: {v}")

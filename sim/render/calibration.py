@@ -31,7 +31,7 @@ from .camera import Camera, expose
 from .movie import _add_patches
 from .optics import Optics, check_sampling, otf_planes, patch_size, sample_pixel_size, size_transfer
 
-__all__ = ["render_calibration", "calibration_heights"]
+__all__ = ["render_calibration", "calibration_heights", "page_shape_for", "image_diameter_px"]
 
 
 def calibration_heights(z_min: float, z_max: float, z_step: float) -> np.ndarray:
@@ -112,7 +112,38 @@ def _with_bar(gen, total):
             bar.update(1)
 
 
-def render_calibration(out_dir, z_min: float = -60e-6, z_max: float = 60e-6, z_step: float = 2e-6, shape=(64, 64),
+MAX_AUTO_PAGE = 512     # px: default pages are sized to the image at the largest defocus, up to this
+
+
+def image_diameter_px(optics: Optics, pixel: float, defocus: float, radius: float = 0.0) -> float:
+    """Diameter (px) holding the particle image at ``defocus`` (m): geometric blur, line foci, 3 Airy radii."""
+    r = (abs(defocus) + optics.line_focus_offset) * optics.half_angle_tan + 3.0 * optics.airy_radius + radius
+    return 2.0 * r / pixel
+
+
+def page_shape_for(z, optics: Optics, camera: Camera, focal_plane: float = 0.0, radius: float = 0.0, shape=None):
+    """Page shape for a calibration stack: ``shape`` if given, else one that holds the image at the largest
+    defocus (even, at most :data:`MAX_AUTO_PAGE` px). Warns naming the heights whose image the page cuts."""
+    import warnings
+
+    pixel = sample_pixel_size(optics, camera.pixel_pitch)
+    dz = np.abs(np.asarray(z, float) - float(focal_plane))
+    need = image_diameter_px(optics, pixel, float(dz.max()), radius)
+    if shape is None:
+        n = int(min(MAX_AUTO_PAGE, max(32, 2 * math.ceil(need / 2 + 4))))
+        shape = (n, n)
+    H, W = (int(v) for v in shape)
+    fits = np.array([image_diameter_px(optics, pixel, d, radius) <= min(H, W) for d in dz])
+    if not fits.all():
+        lim = float(dz[fits].max()) if fits.any() else 0.0
+        warnings.warn(f"calibration pages of {H} x {W} px cut the particle image beyond {lim * 1e6:.3g} um of "
+                      f"defocus ({int((~fits).sum())} of {len(dz)} pages; the image is {need:.0f} px across at "
+                      f"{dz.max() * 1e6:.3g} um): those pages will be rejected by the calibration",
+                      stacklevel=3)
+    return H, W
+
+
+def render_calibration(out_dir, z_min: float = -60e-6, z_max: float = 60e-6, z_step: float = 2e-6, shape=None,
                        optics: Optics | None = None, camera: Camera | None = None, focal_plane: float = 0.0,
                        radius: float = 0.0, position=None, brightfield=False, seed=0,
                        compression: str | None = None, progress: bool = True, scatter_phase: float = 2.5) -> dict:
@@ -124,8 +155,10 @@ def render_calibration(out_dir, z_min: float = -60e-6, z_max: float = 60e-6, z_s
     z_min, z_max, z_step : float
         Particle heights, m (defocus = z - focal_plane). Defaults: +-60 um in
         2 um steps, the seed's stage scan.
-    shape : (int, int)
-        Page height and width, pixels.
+    shape : (int, int), optional
+        Page height and width, pixels; default: the image at the largest
+        defocus fits (:func:`page_shape_for`, up to 512 px; a warning names
+        the heights a page cuts).
     optics, camera : Optics, Camera
     focal_plane : float
         m.
@@ -152,7 +185,7 @@ def render_calibration(out_dir, z_min: float = -60e-6, z_max: float = 60e-6, z_s
     optics = optics or Optics()
     camera = camera or Camera()
     check_positive("radius", radius, allow_zero=True)
-    H, W = (int(v) for v in shape)
+    H, W = page_shape_for(z, optics, camera, focal_plane, radius, shape)
     pixel = sample_pixel_size(optics, camera.pixel_pitch)
     if position is None:
         position = (float((W - 1) // 2), float((H - 1) // 2))

@@ -178,7 +178,10 @@ class _Renderer:
 
 
 def frame_interval_of(table: pd.DataFrame) -> float:
-    """Frame interval (s): table metadata ``frame_interval``, else from ``t`` and ``frame``; 1 s if undetermined."""
+    """Frame interval (s): table metadata ``frame_interval``, else from ``t`` and ``frame``.
+
+    Raises UserError when several frames do not tell it (t not increasing); a single-frame table gets 1 s with a
+    warning."""
     meta = metadata(table)
     fi = meta.get("frame_interval")
     if fi:
@@ -190,6 +193,13 @@ def frame_interval_of(table: pd.DataFrame) -> float:
         dt = (t[j] - t[i]) / (f[j] - f[i])
         if dt > 0 and math.isfinite(dt):
             return float(dt)
+        raise UserError(f"the frame interval cannot be told from the table: t goes from {t[i]:g} to {t[j]:g} s over "
+                        f"frames {f[i]}..{f[j]}", "give times t (s) that increase with frame, or the table metadata "
+                        "frame_interval")
+    # one frame: no interval to tell; 1 s is only the TIFF's nominal one (said, not silent)
+    import warnings
+
+    warnings.warn("a single-frame table has no frame interval: the movie is written with 1 s", stacklevel=2)
     return 1.0
 
 

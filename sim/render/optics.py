@@ -148,6 +148,9 @@ def check_sampling(optics: Optics, pixel: float) -> None:
         )
 
 
+MAX_PATCH = 8192       # px a side: one complex plane of this size is 1 GiB
+
+
 def patch_size(optics: Optics, pixel: float, max_defocus: float, max_radius: float = 0.0) -> int:
     """Side (pixels, even, FFT-friendly) of the square patch rendered around each particle.
 
@@ -157,6 +160,12 @@ def patch_size(optics: Optics, pixel: float, max_defocus: float, max_radius: flo
     r = (abs(max_defocus) + optics.line_focus_offset) * optics.half_angle_tan
     r += optics.psf_margin * optics.airy_radius + 2.0 * max_radius
     n = int(math.ceil(2.0 * r / pixel)) + 2
+    if n > MAX_PATCH:
+        # e.g. --astigmatism 0.5 (meant in waves, read as 0.5 m of wavefront): a patch of ~1e9 px a side
+        raise UserError(f"a particle image {n} px across ({2 * r * 1e6:.3g} um: defocus {abs(max_defocus) * 1e6:.3g} um, "
+                        f"astigmatism {optics.astigmatism:g} m, NA {optics.na:g}) exceeds the {MAX_PATCH} px limit",
+                        "give astigmatism in m of wavefront (e.g. 1.2e-7, not waves) and heights in m within tens of um "
+                        "of the focal plane")
     n = max(n, 16)
     n = sfft.next_fast_len(n, real=True)
     while n % 2:

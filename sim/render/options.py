@@ -74,8 +74,12 @@ def check_out_dir(out) -> Path:
     return out
 
 
-def save_montage(images, titles, path, ncols: int = 6, overlay=None, title: str | None = None) -> Path:
-    """Grey-scale montage PNG of a few images; ``overlay``: list of (x_px, y_px) arrays to circle."""
+def save_montage(images, titles, path, ncols: int = 6, overlay=None, title: str | None = None,
+                 smooth: bool = False) -> Path:
+    """Grey-scale montage PNG of a few images; ``overlay``: list of (x_px, y_px) arrays to circle.
+
+    Each image is stretched between its 1st and 99.9th percentiles; ``smooth``: Gaussian-smoothed first (faint
+    defocused images on large pages)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -84,12 +88,21 @@ def save_montage(images, titles, path, ncols: int = 6, overlay=None, title: str 
     n = len(images)
     ncols = min(ncols, n)
     nrows = (n + ncols - 1) // ncols
-    fig, axes = plt.subplots(nrows, ncols, figsize=(2.6 * ncols, 2.6 * nrows + (0.4 if title else 0)), squeeze=False)
+    # room for one title line above each row
+    fig, axes = plt.subplots(nrows, ncols, figsize=(2.6 * ncols, 2.9 * nrows + (0.4 if title else 0)), squeeze=False)
     for ax in axes.ravel():
         ax.axis("off")
     for i, (img, t) in enumerate(zip(images, titles)):
         ax = axes.ravel()[i]
-        ax.imshow(img, cmap="gray", interpolation="nearest")
+        img = np.asarray(img, np.float64)
+        if smooth:
+            # a faint defocused image spread over a large page is invisible under the pixel noise at the montage's
+            # scale: smoothed over ~1 displayed pixel and stretched between percentiles it shows
+            from scipy.ndimage import gaussian_filter
+
+            img = gaussian_filter(img, max(1.0, max(img.shape) / 200.0))
+        lo, hi = np.percentile(img, [1.0, 99.9])
+        ax.imshow(img, cmap="gray", interpolation="nearest", vmin=lo, vmax=hi if hi > lo else lo + 1)
         if overlay is not None and overlay[i] is not None:
             x, y = overlay[i]
             ax.scatter(x, y, s=40, facecolors="none", edgecolors="r", linewidths=0.7)
@@ -112,5 +125,25 @@ def preview_pages(tiff_path, pages):
         return [tf.pages[int(k)].asarray() for k in pages]
 
 
-def spread_indices(n: int, k: int = 6):
-    return sorted(set(np.linspace(0, n - 1, min(k, n)).round().astype(int).tolist()))
+def spread_indices(n: int, k: int = 6, include=None):
+    """About ``k`` indices spread over 0..n-1, always with ``include`` (e.g. the page nearest focus) among them."""
+    idx = set(np.linspace(0, n - 1, min(k, n)).round().astype(int).tolist())
+    if include is not None and 0 <= int(include) < n and int(include) not in idx:
+        idx.discard(min(idx, key=lambda i: abs(i - int(include))))
+        idx.add(int(include))
+    return sorted(idx)
+
+
+def crop_box(xs, ys, shape, margin: int = 40, min_gain: float = 0.5):
+    """(r0, r1, c0, c1) around the points (px) plus ``margin``, or the whole frame if that box is not at least
+    ``min_gain`` smaller in area (a preview of particles in one corner of a large frame)."""
+    H, W = shape
+    xs, ys = np.asarray(xs, float), np.asarray(ys, float)
+    ok = np.isfinite(xs) & np.isfinite(ys)
+    if not ok.any():
+        return 0, H, 0, W
+    r0, r1 = max(int(ys[ok].min()) - margin, 0), min(int(ys[ok].max()) + margin + 1, H)
+    c0, c1 = max(int(xs[ok].min()) - margin, 0), min(int(xs[ok].max()) + margin + 1, W)
+    if (r1 - r0) * (c1 - c0) > (1 - min_gain) * H * W:
+        return 0, H, 0, W
+    return r0, r1, c0, c1
