@@ -566,6 +566,8 @@ class DEMSystem:
         self.chunk_peaks = np.zeros(3)
         left = int(nsteps)
         status = OK
+        t0 = self.t
+        done_here = 0
         while left > 0:
             if until is not None:
                 if self.t >= until:
@@ -587,9 +589,10 @@ class DEMSystem:
             if chunker is not None:
                 chunker.done(done * self.n)
             self.step += done
-            # fixed steps: t from the step count as before (same rounding); the overdamped stepper's
-            # steps vary in length
-            self.t += t_done if self.integrator == OVERDAMPED else done * self.dt
+            done_here += done
+            # fixed steps: t = t0 + (steps of this call) dt, the rounding of one kernel call whatever the
+            # split; the overdamped stepper's steps vary in length
+            self.t = self.t + t_done if self.integrator == OVERDAMPED else t0 + done_here * self.dt
             self.n_builds += nb
             self.status = status
             self.fail_particle = part
