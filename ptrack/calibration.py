@@ -167,8 +167,10 @@ def build_calibration(stack, z, pixel_size=None, template_size: int | None = Non
         m per pixel.
     template_size : int, optional
         Template side (px, made odd); default from each page's image.
-    brightfield : bool
+    brightfield : bool or None
         Invert the pages first (dark particles); templates are signed.
+        None: decided from the stack (:func:`ptrack.gdpt.stack.stack_polarity`);
+        a setting the stack clearly contradicts is a UserError.
     max_beads : int, optional
         Use at most this many beads (the brightest).
     fine_step : float, "auto" or None
@@ -198,6 +200,16 @@ def build_calibration(stack, z, pixel_size=None, template_size: int | None = Non
     stack, z = stack[order], z[order]
     if np.any(np.diff(z) <= 0):
         raise UserError("calibration heights are not distinct", "give one distinct z per page")
+    from .gdpt.stack import stack_polarity
+
+    pol, ratio = stack_polarity(stack)
+    if brightfield is None:
+        brightfield = pol == "dark"         # from the stack itself (unambiguous near focus)
+    elif ratio > 5 and (pol == "dark") != bool(brightfield):
+        raise UserError(f"calibration stack {source or ''} shows {pol} particles (strongest excursion {ratio:.0f}x the "
+                        f"opposite one) but {'brightfield' if brightfield else 'fluorescence'} was asked for "
+                        "(given, or detected from the movie)",
+                        f"give {'--fluorescence' if pol == 'bright' else '--brightfield'}")
     if brightfield:
         stack = stack.max() - stack
     templates, zz, centers, info = build_templates(stack, z, bool(brightfield), template_size, max_beads, fine_step)
