@@ -860,7 +860,7 @@ def run_dem(scene, out_dir, resume=False, progress=True, checkpoint_every=None, 
         unwrapped, vx, vy, vz, radius), ``scene.json`` (resolved scene, dt and
         why), ``checkpoint.npz`` (every ``checkpoint_every`` frames) and, on a
         blow-up, ``last_good_state.npz``. A folder holding an earlier run gets
-        that run's files moved into ``previous-N/`` (:func:`sim.driver.prepare_out_dir`).
+        that run's files moved into ``previous/`` (one generation) (:func:`sim.driver.prepare_out_dir`).
     resume : bool
         Continue from ``out_dir/checkpoint.npz``; the result equals the
         uninterrupted run bit for bit. The checkpoint, its committed table

@@ -1,7 +1,7 @@
 """Pieces of the run loop shared by :func:`sim.run.run_scene` and :func:`sim.dem.run_dem`.
 
 * :func:`prepare_out_dir`: a new run never merges into an old one; the files
-  of a run already in the folder are moved aside into ``previous-N/``.
+  of a run already in the folder are moved aside into ``previous/`` (one generation).
 * :class:`InterruptGuard`: SIGINT and SIGTERM only set a flag while a run is
   inside compiled kernels (no exception can surface inside numba's dispatcher,
   which gave ``SystemError: ... returned a result with an exception set``);
@@ -41,7 +41,8 @@ def holds_run(out_dir) -> bool:
 
 
 def prepare_out_dir(out_dir) -> bool:
-    """Create ``out_dir`` for a new run, moving the files of an earlier run aside.
+    """Create ``out_dir`` for a new run, moving the files of an earlier run into ``out_dir/previous/``
+    (replacing what an older run left there).
 
     Returns True when the folder was created here (so a refused run can
     remove it again with :func:`discard_if_empty`).
@@ -50,10 +51,11 @@ def prepare_out_dir(out_dir) -> bool:
     created = not out_dir.exists()
     out_dir.mkdir(parents=True, exist_ok=True)
     if holds_run(out_dir):
-        k = 1
-        while (out_dir / f"previous-{k}").exists():
-            k += 1
-        dest = out_dir / f"previous-{k}"
+        # one generation is kept: repeated runs into one folder (make run, studies) must not pile up
+        # copies of large tables; the run before the previous one is deleted
+        dest = out_dir / "previous"
+        if dest.exists():
+            shutil.rmtree(dest)
         dest.mkdir()
         for f in RUN_FILES:
             if (out_dir / f).exists():

@@ -245,7 +245,7 @@ def run_scene(scene: Scene, out_dir, seed=None, progress: bool = True, resume: b
         frames completed so far are kept, marked incomplete.
 
     A folder that holds an earlier run gets that run's files moved into
-    ``previous-N/`` first (:func:`sim.driver.prepare_out_dir`).
+    ``previous/`` (one generation) first (:func:`sim.driver.prepare_out_dir`).
     """
     if seed is not None:
         scene = dataclasses.replace(scene, seed=int(seed))

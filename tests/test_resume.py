@@ -160,7 +160,7 @@ def test_resume_without_checkpoint_is_refused_at_once(scene_file, tmp_path):
     assert time.time() - t0 < 60  # (no wall-time assertion on the run: only that it did not start one)
 
 
-def test_new_run_moves_an_old_run_aside(scene_file, tmp_path):
+def test_new_run_moves_the_old_run_aside_keeping_one_generation(scene_file, tmp_path):
     from ptrack.errors import UserError  # noqa: F401  (the CLI's error type)
     from sim.run import run_scene
     from sim.scene import scene_from_dict
@@ -174,8 +174,11 @@ def test_new_run_moves_an_old_run_aside(scene_file, tmp_path):
     raw["seed"] = 2
     run_scene(scene_from_dict(raw), tmp_path, progress=False)
     second = _table(tmp_path / "trajectories.parquet")
-    moved = _table(tmp_path / "previous-1" / "trajectories.parquet")
+    moved = _table(tmp_path / "previous" / "trajectories.parquet")
     pd.testing.assert_frame_equal(moved, first)
+    run_scene(scene_from_dict(raw), tmp_path, progress=False)  # a third run: one generation kept
+    pd.testing.assert_frame_equal(_table(tmp_path / "previous" / "trajectories.parquet"), second)
+    assert sorted(p.name for p in tmp_path.iterdir() if p.is_dir()) == ["previous"]
     assert json.loads((tmp_path / "scene.json").read_text())["scene"]["seed"] == 2
     assert not np.array_equal(second[["x", "y"]].to_numpy(), first[["x", "y"]].to_numpy())
     assert not (tmp_path / ".segments").exists()

@@ -8,7 +8,7 @@ Every run checkpoints (the table is committed in segments with each
 checkpoint), so after a kill ``--resume`` continues and ends with every frame
 of an uninterrupted run; Ctrl-C or SIGTERM stop within about a second (exit
 130) keeping the frames done. A folder holding an earlier run has it moved
-into ``previous-N/``.
+into ``previous/`` (one generation).
 """
 from __future__ import annotations
 
