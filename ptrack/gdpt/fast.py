@@ -6,8 +6,8 @@ reduced by an integer factor ``f`` (area averaging, so the photon noise is
 averaged too, not aliased) until the largest template is about
 ``target`` px; the whole matcher (:func:`ptrack.calibration.locate_3d`:
 candidates, residual subtraction, splitting of merged images) runs there at
-~f^4 less cost, and x, y, z of each particle are then refined on the full
-resolution frame near that match (:func:`refine_full`).
+~f^4 less cost; the small (near-focus) images, whose shape the reduction
+blurs, are then matched again at full resolution (:func:`refine_full`).
 """
 from __future__ import annotations
 
@@ -73,9 +73,10 @@ def reduce_frame(img, f: int):
 
 
 def refine_full(img, calib, df, f: int, smooth: float = 1.5, small: int = 64):
-    """x, y, z and Cm of each particle again on the full-resolution frame, near the reduced-resolution match.
+    """x, y, z and Cm of each small image again on the full-resolution frame, near the reduced-resolution match.
 
-    Per particle: its best template correlated over +-(f + 1) px gives the
+    Images of ``small`` px or more keep their reduced-resolution values.
+    Per small image: its best template correlated over +-(f + 1) px gives the
     position; then the templates around its height (for images under
     ``small`` px, whose shape the reduction blurred, every template under
     ``small`` px and one recorded step beyond; 3 interpolated templates
@@ -106,6 +107,11 @@ def refine_full(img, calib, df, f: int, smooth: float = 1.5, small: int = 64):
         k = int(pages[i])
         t = tm[k]
         T = t.shape[0]
+        if T >= small:
+            # a large image keeps its reduced-resolution match: its ring radii span many reduced pixels, and the
+            # full-resolution search around it was measured worse (512^2, +-10 um stack: 3 px and 0.5 um off
+            # for the particles at the ends of the range)
+            continue
         cy, cx = calib.centers[k]
         m = f + 1
         top, left = int(round(ys[i] - cy)) - m, int(round(xs[i] - cx)) - m
