@@ -12,7 +12,7 @@ A. Point simulations (no images): free Brownian particles, uniform over a
      - the true identities (perfect linking), with the correction,
      - msd.pair_diffusion (no linking).
 B. Movies rendered like data/synthetic/diffusion2d (``--movies K`` seeds; 0
-   skips): the whole pipeline (ptrack.pipeline.analyze_movie), D reported,
+   skips): the whole pipeline (ptrack.analysis.analyze_movie), D reported,
    from the tracks and linking-free, against the rendered D.
 
 Run: ``.venv/bin/python bench/bench_pair_diffusion.py [--seeds 20] [--movies 8]``
@@ -73,7 +73,7 @@ def part_a(seeds: int):
 
 
 def part_b(movies: int):
-    from ptrack.pipeline import analyze_movie
+    from ptrack.analysis import analyze_movie
     from sim.render import render_movie
     from sim.render.datasets import diffusion2d_scene
 
@@ -94,7 +94,7 @@ def part_b(movies: int):
             t0 = time.perf_counter()
             r = analyze_movie(out / "movie.tif", radius=sc["extra"]["radius"], viscosity=1e-3, temperature=293.15,
                               motion_blur=0.0, gain=cam.gain, offset=cam.offset, read_noise=cam.read_noise,
-                              progress=False)
+                              progress=False).summary
             wall = time.perf_counter() - t0
             pr = r["D_pairs"]
             row = (r["D_tracks"]["xy"] / D0 - 1, r["D_tracks_err"]["xy"] / D0, pr["D"]["xy"] / D0 - 1,

@@ -284,10 +284,10 @@ def _brightfield(d):
 
 
 def section_c():
-    print("\n## C. D on data/synthetic/diffusion2d (ptrack.pipeline.analyze_movie)")
+    print("\n## C. D on data/synthetic/diffusion2d (ptrack.analysis.analyze_movie)")
     print("command: .venv/bin/python bench/bench_pipeline.py  (section C)")
     from ptrack.msd import estimate_diffusion
-    from ptrack.pipeline import analyze_movie
+    from ptrack.analysis import analyze_movie
 
     d = ROOT / "data" / "synthetic" / "diffusion2d"
     if not (d / "movie.tif").exists():
@@ -299,7 +299,7 @@ def section_c():
     t0 = time.perf_counter()
     s = analyze_movie(d / "movie.tif", radius=params.get("radius", 2.5e-7), viscosity=meta.get("viscosity", 1e-3),
                       temperature=meta.get("temperature", 293.15), gain=cam["gain"], offset=cam["offset"],
-                      read_noise=cam["read_noise"], motion_blur=0.0, progress=False)   # rendered without blur
+                      read_noise=cam["read_noise"], motion_blur=0.0, progress=False).summary   # rendered without blur
     el = time.perf_counter() - t0
     truth = pd.read_parquet(d / "truth.parquet")
     truth = truth[truth["in_frame"]] if "in_frame" in truth else truth

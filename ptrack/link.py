@@ -20,7 +20,7 @@ import pandas as pd
 
 from .errors import UserError
 
-__all__ = ["nearest_neighbour_distance", "link", "filter_short", "drift", "subtract_drift", "to_trajectories",
+__all__ = ["nearest_neighbour_distance", "link", "filter_short", "to_trajectories",
            "from_trackpy", "to_trackpy"]
 
 
@@ -141,20 +141,6 @@ def filter_short(linked: pd.DataFrame, min_length: int = 5) -> pd.DataFrame:
     out = linked[n.to_numpy() >= int(min_length)].reset_index(drop=True)
     out.attrs.update(linked.attrs)
     return out
-
-
-def drift(df: pd.DataFrame, axes=("x", "y")) -> pd.DataFrame:
-    """Ensemble drift of a trajectories table (delegates to :func:`ptrack.msd.drift`)."""
-    from . import msd
-
-    return msd.drift(df, axes=axes)
-
-
-def subtract_drift(df: pd.DataFrame, axes=("x", "y")) -> pd.DataFrame:
-    """Trajectories with the ensemble drift removed (delegates to :func:`ptrack.msd.subtract_drift`)."""
-    from . import msd
-
-    return msd.subtract_drift(df, axes=axes)
 
 
 def to_trajectories(linked: pd.DataFrame, pixel_size: float, frame_interval: float, meta: dict | None = None,

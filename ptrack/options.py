@@ -24,6 +24,7 @@ import re
 from dataclasses import dataclass
 from decimal import Decimal, InvalidOperation
 
+from .constants import MOTION_BLUR_MAX
 from .errors import UserError
 
 
@@ -97,8 +98,8 @@ def whole(lo: int, unit: str, hi: int | None = None) -> Range:
 
 #: The motion-blur parameter R of a camera exposure: 0 (instantaneous) to 1/4
 #: (the exposure lasts the whole frame interval, uniform shutter: R = 1/6).
-MOTION_BLUR = Range("a motion-blur parameter R from 0 to 1/4 (1/6: full-frame exposure, 0: instantaneous)",
-                    lo=0.0, hi=0.25)
+MOTION_BLUR = Range("a motion-blur parameter R in [0, 1/4) (1/6: full-frame exposure, 0: instantaneous)",
+                    lo=0.0, hi=MOTION_BLUR_MAX, hi_open=True)
 SEED = whole(0, "random seed")
 
 #: option string -> allowed range, for every numeric option of every command

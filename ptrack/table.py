@@ -137,11 +137,6 @@ def validate(df: pd.DataFrame, source: str = "trajectories table") -> pd.DataFra
     return df
 
 
-def is_3d(df: pd.DataFrame) -> bool:
-    """True if the table has at least one finite z."""
-    return bool(np.isfinite(df["z"].to_numpy()).any())
-
-
 def to_jsonable(meta):
     """Convert numpy scalars/arrays, Paths, tuples (recursively) to JSON-ready Python objects."""
     def conv(v):

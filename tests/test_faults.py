@@ -436,28 +436,20 @@ def _interrupt_cases():
 
 # cases that fail because of a bug in a file helper F does not own (owner's file in the reason)
 XFAIL = {
-    "track-truncated_tail": "ptrack/io.py (helper A): a movie cut 3000 bytes short is tracked with exit 0 and no word",
-    "render-huge_coords": "sim/render/movie.py (helper B): coordinates of 1e300 m render with RuntimeWarnings "
+    "render-huge_coords": "sim/render/movie.py: coordinates of 1e300 m render with RuntimeWarnings "
                           "and exit 0 instead of a refusal",
-    "ctrl-c-simulate": "sim/driver.py / sim/run.py (helper C1): Ctrl-C of a free-particle run leaves an empty "
+    "ctrl-c-simulate": "sim/driver.py / sim/run.py: Ctrl-C of a free-particle run leaves an empty "
                        ".segments folder in --out",
-    "track-dask-unreachable-scheduler": "ptrack/commands/track.py / ptrack/pipeline.py (helper A): an unreachable "
-                                        "--scheduler ends in an OSError traceback after 30 s",
-    "simulate-run-that-takes-forever": "sim/run.py (helper C1): E = 1e12 V/m on free particles starts a run of "
+    "simulate-run-that-takes-forever": "sim/run.py: E = 1e12 V/m on free particles starts a run of "
                                        "~1e9 steps per frame instead of refusing it",
-    "disk-analyze": "ptrack/pipeline.py:524 (helper A): the report folder is made before writing and left empty "
+    "disk-analyze": "ptrack/analysis.py: the report folder is made before writing and left empty "
                     "on a full disk (use ptrack.errors.output_dir)",
-    "disk-render": "sim/render/movie.py:624 (helper B): the --out folder is left empty on a full disk "
+    "disk-render": "sim/render/movie.py:624: the --out folder is left empty on a full disk "
                    "(use ptrack.errors.output_dir)",
-    "disk-render-calibration": "sim/render/calibration.py:162 (helper B): the --out folder is left empty on a "
+    "disk-render-calibration": "sim/render/calibration.py:162: the --out folder is left empty on a "
                                "full disk (use ptrack.errors.output_dir)",
-    "disk-simulate": "sim/run.py:182 (helper C1): the --out folder is left empty on a full disk "
+    "disk-simulate": "sim/run.py:182: the --out folder is left empty on a full disk "
                      "(use ptrack.errors.output_dir)",
-    "read-only-track-json": "ptrack/commands/track.py (helper A): --json on a read-only disk is found only after "
-                            "tracking, the --out table is left (call ptrack.errors.check_writable on every output "
-                            "first)",
-    "unwritable-track-json": "ptrack/commands/track.py (helper A): --json under /proc is found only after "
-                             "tracking, the --out table is left (call ptrack.errors.check_writable first)",
 }
 
 CASES: list[Case] = _movie_cases() + _table_cases() + _scene_cases() + _number_cases() + _disk_cases() \

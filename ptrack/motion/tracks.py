@@ -33,10 +33,7 @@ AXES = {
 COMPONENTS = ("x", "y", "z")
 #: default longest lag (frames) of MSD tables
 DEFAULT_MAX_LAG = 100
-#: largest motion-blur parameter accepted (exclusive). R = S/6 for a uniform exposure of a fraction S of the
-#: frame, so a real camera has R <= 1/6; R = 1/4 would need all the light at the two ends of the frame and makes
-#: the increments' covariance singular without localisation noise (velocity GLS, CVE error model).
-MOTION_BLUR_MAX = 0.25
+from ..constants import MOTION_BLUR_MAX  # noqa: E402  (the one range, shared with ptrack.options)
 #: largest |coordinate| (m) accepted: squares and sums of squares of larger values overflow float64
 MAX_COORDINATE = 1e150
 

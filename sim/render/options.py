@@ -68,10 +68,13 @@ def brightfield_from_args(a):
 
 
 def check_out_dir(out) -> Path:
+    """The --out folder, checked before any rendering: a directory (or creatable) and writable."""
+    from ptrack.errors import check_writable
+
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out} exists and is not a directory", "give a directory path")
-    return out
+    return check_writable(out, "--out", directory=True)
 
 
 def save_montage(images, titles, path, ncols: int = 6, overlay=None, title: str | None = None,
