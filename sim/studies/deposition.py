@@ -29,7 +29,9 @@ import numpy as np
 
 from ptrack.errors import UserError, atomic_output
 
-SCENES = Path(__file__).resolve().parents[2] / "scenes"
+# the source tree keeps scenes/ at the top; an installed wheel ships them as sim/scenes/ (setup.py)
+SCENES = next((p for p in (Path(__file__).resolve().parents[2] / "scenes", Path(__file__).resolve().parents[1] / "scenes")
+               if p.is_dir()), Path(__file__).resolve().parents[2] / "scenes")
 
 
 def add_arguments(p):
