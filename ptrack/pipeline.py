@@ -224,18 +224,16 @@ def track_movie(movie, out=None, pixel_size: float | None = None, frame_interval
         mv.require_calibration()
         px, dt = mv.pixel_size, mv.frame_interval
         cal = None
-        if calib is not None and brightfield is None:
-            # the calibration is prepared with the movie's polarity: decide it first (from the data)
-            from .image.detect import detect
-
-            brightfield = bool(detect(mv[0], offset=offset)["polarity"] < 0)
-            polarity_from = "data"
-        else:
-            polarity_from = None
+        polarity_from = None
         if calib is not None:
+            # with a calibration the polarity is the stack's own (unambiguous near focus; a full-frame
+            # fluorescence movie of a few defocused beads can look dark to the movie detector)
             cal = calib if isinstance(calib, Calibration) else load_calibration(
                 calib, z_csv=calib_z, z_step=calib_step, z0=calib_z0, brightfield=brightfield)
             check_pixel_size(cal, px)
+            if brightfield is None:
+                brightfield = bool(cal.info.get("signed", False))
+                polarity_from = "calibration stack"
         elif calib_z is not None or calib_step is not None:
             raise UserError("--calib-z/--calib-step given without --calib", "give the calibration stack with --calib")
         feats, info = locate_movie(mv, brightfield=brightfield, diameter=diameter, calib=cal, snr=snr, gain=gain,
@@ -281,6 +279,10 @@ def track_movie(movie, out=None, pixel_size: float | None = None, frame_interval
                "search_range_px": link_info.get("search_range_px"), "three_d": cal is not None,
                "polarity": info.get("polarity"), "polarity_from": info.get("polarity_from"),
                "detector": info.get("detector"), "stage_times_s": stages}
+    if cal is not None:  # what the calibration stack gave: beads used, pages rejected, the beads' own z spread
+        ci = cal.info
+        summary["calibration"] = {"n_beads": ci.get("n_beads"), "rejected_pages": ci.get("rejected"),
+                                  "z_error_m": ci.get("z_error"), "z_source": ci.get("z_source")}
     if out is not None:
         t = time.perf_counter()
         write_table(table, out)
