@@ -429,15 +429,6 @@ def analyze_movie(movie, radius: float, viscosity: float, temperature: float, re
 
 def jsonable(obj):
     """Nested dicts/lists with numpy scalars made plain and non-finite floats made None (valid JSON)."""
-    if isinstance(obj, dict):
-        return {str(k): jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [jsonable(v) for v in obj]
-    if isinstance(obj, (np.floating, float)):
-        v = float(obj)
-        return v if math.isfinite(v) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    return obj
+    from .table import to_jsonable
+
+    return to_jsonable(obj, finite=True)

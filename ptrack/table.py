@@ -15,6 +15,7 @@ line of a CSV file.
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -137,13 +138,21 @@ def validate(df: pd.DataFrame, source: str = "trajectories table") -> pd.DataFra
     return df
 
 
-def to_jsonable(meta):
-    """Convert numpy scalars/arrays, Paths, tuples (recursively) to JSON-ready Python objects."""
+def to_jsonable(meta, finite: bool = False):
+    """Convert numpy scalars/arrays, Paths, tuples (recursively) to JSON-ready Python objects.
+
+    ``finite=True`` (reports, summaries): non-finite floats become None, so the
+    output is valid JSON; table metadata keeps NaN (Parquet stores it).
+    """
     def conv(v):
+        if isinstance(v, (np.bool_,)):
+            return bool(v)
         if isinstance(v, (np.floating, np.integer)):
-            return v.item()
+            v = v.item()
+        if finite and isinstance(v, float) and not math.isfinite(v):
+            return None
         if isinstance(v, np.ndarray):
-            return v.tolist()
+            return conv(v.tolist())
         if isinstance(v, Path):
             return str(v)
         if isinstance(v, dict):

@@ -67,11 +67,9 @@ def _um(v, e=None):
 
 
 def _clean(v):
-    if isinstance(v, (float, np.floating)):
-        return float(v) if math.isfinite(v) else None
-    if isinstance(v, (np.integer,)):
-        return int(v)
-    return v
+    from ..table import to_jsonable
+
+    return to_jsonable(v, finite=True)
 
 
 def run(args) -> int:
