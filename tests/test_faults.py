@@ -620,14 +620,20 @@ def kill_and_resume(scene: Path, work: Path, signals) -> dict:
             if ck.exists() and ck.stat().st_mtime_ns != mtime:
                 break
             time.sleep(0.01)
-        p.send_signal(sig)  # at once: on an idle machine the rest of the run takes well under a second
+        if p.poll() is None:
+            p.send_signal(sig)  # at once: on an idle machine the rest of the run takes well under a second
         p.communicate(timeout=60)
         codes.append(p.returncode)
-    r = subprocess.run([sys.executable, "-m", "ptrack", "simulate", str(scene), "--out", str(out), "--quiet",
-                        "--resume"], capture_output=True, text=True)
-    codes.append(r.returncode)
+        if p.returncode == 0:
+            break  # the run ended before the signal landed (a fast machine): it is complete, nothing to resume
+    stderr = []
+    if codes[-1] != 0:
+        r = subprocess.run([sys.executable, "-m", "ptrack", "simulate", str(scene), "--out", str(out), "--quiet",
+                            "--resume"], capture_output=True, text=True)
+        codes.append(r.returncode)
+        stderr = r.stderr.strip().splitlines()[-1:] if r.stderr.strip() else []
     res = {"codes": codes, "reference": read_table(ref / "trajectories.parquet"), "resumed": None,
-           "stderr": r.stderr.strip().splitlines()[-1:] if r.stderr.strip() else []}
+           "stderr": stderr}
     with contextlib.suppress(Exception):
         res["resumed"] = read_table(out / "trajectories.parquet")
     res["seconds"] = time.perf_counter() - t0
@@ -827,7 +833,9 @@ def test_dem_killed_twice_then_resumed_gives_every_frame_of_an_uninterrupted_run
     r = suite.kill_resume()
     ref, got = r["reference"], r["resumed"]
     assert r["codes"][0] == 0 and r["codes"][-1] == 0, (r["codes"], r["stderr"])
-    assert r["codes"][1:3] == [-signal.SIGKILL, -signal.SIGKILL], r["codes"]  # both kills landed mid-run
+    # the first kill lands mid-run; the second lands too unless the resumed run finished first (a fast machine:
+    # it then ends with exit 0 and is the table checked; tests/test_resume.py waits for the double kill itself)
+    assert r["codes"][1] == -signal.SIGKILL and r["codes"][2] in (-signal.SIGKILL, 0), r["codes"]
     assert got is not None, "the resumed table cannot be read"
     assert "incomplete" not in got.attrs["ptrack"]
     assert sorted(got["frame"].unique()) == sorted(ref["frame"].unique())
