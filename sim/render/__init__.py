@@ -9,10 +9,25 @@ See :mod:`sim.render.optics`, :mod:`sim.render.camera`,
 :mod:`sim.render.movie`, :mod:`sim.render.calibration` and
 :mod:`sim.render.datasets` (the shipped data in ``data/synthetic``).
 """
-from .camera import Camera, expose
-from .calibration import calibration_heights, calibration_images, render_calibration
-from .movie import expected_frames, frame_interval_of, localisation_crlb, render_frames, render_movie
-from .optics import Optics, build_psf_stack, otf_planes, psf_image, sample_pixel_size
+import importlib
+
+# name -> submodule; loaded on first use (PEP 562), so `sim.render.options` (the CLI's parsers) does not pull in
+# the renderer, numba kernels and FFTs
+_WHERE = {
+    "Camera": "camera", "expose": "camera",
+    "calibration_heights": "calibration", "calibration_images": "calibration", "render_calibration": "calibration",
+    "expected_frames": "movie", "frame_interval_of": "movie", "localisation_crlb": "movie", "render_frames": "movie",
+    "render_movie": "movie",
+    "Optics": "optics", "build_psf_stack": "optics", "otf_planes": "optics", "psf_image": "optics",
+    "sample_pixel_size": "optics",
+}
+
+
+def __getattr__(name):
+    if name in _WHERE:
+        return getattr(importlib.import_module(f".{_WHERE[name]}", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "Optics", "Camera", "expose", "render_frames", "expected_frames", "render_movie", "render_calibration",
