@@ -30,7 +30,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
 from test_detect import _empty  # noqa: E402
-from test_real_images import _erf_spot, _grid, _ring, _scores  # noqa: E402
+from test_real_images import _erf_spot, _grid, _ring, _scores, brightfield_rings_frame  # noqa: E402
 
 from ptrack.image.detect import detect  # noqa: E402
 from ptrack.locate import locate, mortensen_sigma  # noqa: E402
@@ -88,16 +88,8 @@ def models(rng):
     out.append(("fluorescence rings R=5 px", rng.poisson(lam).astype(np.uint16), xs, ys,
                 1 / np.sqrt(np.sum(d * d / mu(24.3)))))
     for sign, name in ((1, "brightfield: bright centre, dark ring"), (-1, "brightfield: dark centre, bright ring")):
-        field = 2000.0 * (1 + 0.2 * xx / shape[1])
-        dust = np.prod([1 - 0.04 * np.exp(-((xx - dx) ** 2 + (yy - dy) ** 2) / (2 * 14.0 ** 2))
-                        for dx, dy in rng.uniform(0, 192, (3, 2))], axis=0)
-        xs, ys = _grid(shape, 32, rng)
-        img = np.ones(shape)
-        for x, y in zip(xs, ys):
-            img += sign * (0.25 * _erf_spot(x, y, 1.6, shape) * 2 * np.pi * 1.6 ** 2 / 4
-                           - 0.12 * _ring(x, y, 5.0, 1.2, shape))
-        out.append((name + ", dust", rng.poisson(np.clip(field * img * dust / 3, 0, None)).astype(np.uint16),
-                    xs, ys, np.nan))
+        frame, xs, ys = brightfield_rings_frame(sign, rng, shape)
+        out.append((name + ", dust", frame, xs, ys, np.nan))
     return out
 
 

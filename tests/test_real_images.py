@@ -120,13 +120,10 @@ def test_model_defocused_fluorescence_rings_radial_symmetry_near_the_bound():
     assert 0.5 < df["sigma_x_px"].median() / e.mean() < 2.0
 
 
-@pytest.mark.parametrize("sign", [1, -1])
-def test_model_brightfield_rings_both_polarities(sign):
-    """Absorption brightfield out of focus: a centre of one sign inside a ring of the other (sign=+1:
-    bright centre, dark ring; -1: dark centre, bright ring) on an uneven bright field with dust (large
-    faint dark blobs); no option: recall and precision >= 0.95, centres within 0.3 px RMS."""
-    rng = np.random.default_rng(5)
-    shape = (192, 192)
+def brightfield_rings_frame(sign, rng, shape=(192, 192)):
+    """One absorption-brightfield frame of defocused particles on a 32 px grid: a centre of sign ``sign``
+    inside a ring of the other, on a field brighter to the right, with three faint dark dust blobs.
+    Returns (uint16 frame, true x, true y) in px. Shared with bench/bench_detect.py."""
     yy, xx = np.mgrid[:shape[0], :shape[1]]
     field = 2000.0 * (1 + 0.2 * xx / shape[1])
     dust = np.prod([1 - 0.04 * np.exp(-((xx - dx) ** 2 + (yy - dy) ** 2) / (2 * 14.0 ** 2))
@@ -136,7 +133,15 @@ def test_model_brightfield_rings_both_polarities(sign):
     for x, y in zip(xs, ys):
         img += sign * (0.25 * _erf_spot(x, y, 1.6, shape) * 2 * np.pi * 1.6 ** 2 / 4
                        - 0.12 * _ring(x, y, 5.0, 1.2, shape))
-    frame = rng.poisson(np.clip(field * img * dust / 3, 0, None)).astype(np.uint16)
+    return rng.poisson(np.clip(field * img * dust / 3, 0, None)).astype(np.uint16), xs, ys
+
+
+@pytest.mark.parametrize("sign", [1, -1])
+def test_model_brightfield_rings_both_polarities(sign):
+    """Absorption brightfield out of focus: a centre of one sign inside a ring of the other (sign=+1:
+    bright centre, dark ring; -1: dark centre, bright ring) on an uneven bright field with dust (large
+    faint dark blobs); no option: recall and precision >= 0.95, centres within 0.3 px RMS."""
+    frame, xs, ys = brightfield_rings_frame(sign, np.random.default_rng(5))
     df = locate(frame)
     r, p, e = _scores(df, xs, ys)
     assert r >= 0.95 and p >= 0.95, (r, p)
