@@ -2,9 +2,9 @@
 import numpy as np
 import pandas as pd
 import pytest
-from scipy.spatial import cKDTree
 from scipy.special import erf
 
+from ptrack.motion import match_truth
 from ptrack.locate import cramer_rao_bound, estimate_sigma, find_peaks, fit_spots, locate, mortensen_sigma
 from ptrack.preprocess import prepare
 
@@ -30,9 +30,18 @@ def grid_positions(shape, spacing, rng, margin=10):
 
 
 def match(found_xy, true_xy, r=2.0):
-    d, i = cKDTree(true_xy).query(found_xy)
-    ok = d < r
-    return found_xy[ok] - true_xy[i[ok]], ok, len(np.unique(i[ok]))
+    """One frame through the toolkit's one truth-matching rule (ptrack.motion.match_truth).
+
+    Returns (found - true offsets of the pairs, mask of found spots that have a true one within r px,
+    number of distinct true spots matched).
+    """
+    found_xy, true_xy = np.asarray(found_xy, float).reshape(-1, 2), np.asarray(true_xy, float).reshape(-1, 2)
+    f = pd.DataFrame({"frame": np.zeros(len(found_xy), int), "x_px": found_xy[:, 0], "y_px": found_xy[:, 1]})
+    t = pd.DataFrame({"frame": np.zeros(len(true_xy), int), "x_px": true_xy[:, 0], "y_px": true_xy[:, 1]})
+    fi, ti = match_truth(f, t, max_px=r)
+    ok = np.zeros(len(found_xy), bool)
+    ok[fi] = True
+    return found_xy[fi] - true_xy[ti], ok, len(np.unique(ti))
 
 
 def test_mortensen_formula_limits():
@@ -162,10 +171,10 @@ def test_close_pairs_both_found_and_unbiased(fwhm_apart):
         df = locate(frame, sigma=s, gain=gain, offset=offset, read_noise=1.0)
         found = df[["x_px", "y_px"]].to_numpy()
         true = np.c_[xs, ys]
-        dist, idx = cKDTree(found).query(true)
-        assert np.all(dist < 1.0), f"{np.sum(dist >= 1.0)} of {len(true)} spots missed"
-        assert len(np.unique(idx)) == len(true) and len(df) == len(true)     # one localisation each
-        e = found[idx] - true
+        back, ok, n_distinct = match(true, found, r=1.0)       # each true spot to its nearest localisation
+        assert ok.all(), f"{np.sum(~ok)} of {len(true)} spots missed"
+        assert n_distinct == len(true) and len(df) == len(true)     # one localisation each
+        e = -back                                                   # found - true, in the order of true
         errs.append(e)
         # error along the pair axis (a one-by-one fit pulls each centre towards its partner: negative)
         n = len(cx)
