@@ -46,6 +46,24 @@ def _camera(m):
     return dict(gain=m["cam"].gain, offset=m["cam"].offset, read_noise=m["cam"].read_noise)
 
 
+def test_match_truth_pairs_within_each_frame_and_one_to_one_when_mutual():
+    """The one truth-matching rule: nearest true particle of the same frame, closer than max_px; mutual=True keeps
+    one localisation per true particle (the nearer one)."""
+    truth = pd.DataFrame({"frame": [0, 0, 1], "x_px": [10.0, 20.0, 10.0], "y_px": [10.0, 10.0, 30.0]},
+                         index=[7, 8, 9])
+    found = pd.DataFrame({"frame": [0, 0, 0, 1, 1], "x_px": [10.3, 10.9, 30.0, 10.0, 10.0],
+                          "y_px": [10.0, 10.0, 10.0, 10.0, 30.5]}, index=[100, 101, 102, 103, 104])
+    fi, ti = match_truth(found, truth)
+    # 100 and 101 both on 7; 102 is 10 px from 8; 103 sits on frame 0's particle 7 but is in frame 1 (20 px from 9)
+    assert fi.tolist() == [100, 101, 104] and ti.tolist() == [7, 7, 9]
+    fi, ti = match_truth(found, truth, mutual=True)
+    assert fi.tolist() == [100, 104] and ti.tolist() == [7, 9]
+    fi, ti = match_truth(found, truth, max_px=0.4)
+    assert fi.tolist() == [100] and ti.tolist() == [7]
+    fi, ti = match_truth(found.iloc[:0], truth)
+    assert len(fi) == 0 and len(ti) == 0
+
+
 def test_track_movie_table_and_links(movie, tmp_path):
     out = tmp_path / "t.parquet"
     table, summary = track_movie(movie["path"], out=out, progress=False, **_camera(movie))
