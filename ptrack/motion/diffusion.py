@@ -117,7 +117,7 @@ def estimate_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), estimator: str =
         Covariance-based estimator, or least squares over the optimal number
         of lags.
     motion_blur : float
-        R in [0, 1/4]: 1/6 for a camera shutter open the whole frame
+        R in [0, 1/4) (:func:`ptrack.motion.tracks.check_motion_blur`): 1/6 for a camera shutter open the whole frame
         (default, measured data), 0 for instantaneous positions (simulations).
         Only the localisation error (and the CVE's error model) depend on it;
         D does not.

@@ -299,7 +299,7 @@ def pair_diffusion(df: pd.DataFrame, axes=("x", "y", "xy"), max_lag: int = 3, mo
     max_lag : int
         Longest lag (frames) in the fit; at least 2.
     motion_blur : float
-        R in [0, 1/4] (1/6 full-frame exposure, 0 instantaneous); only the
+        R in [0, 1/4) (:func:`ptrack.motion.tracks.check_motion_blur`; 1/6 full-frame exposure, 0 instantaneous); only the
         localisation error depends on it.
     frame_interval_s : float, optional
         s; default :func:`ptrack.motion.tracks.frame_interval` (the one rule).
