@@ -36,6 +36,22 @@ obtained by an inverse FFT on the pixel grid are exact: no oversampling, no
 interpolation error in x and y. Defocus is interpolated linearly between the
 planes of a precomputed OTF stack (fine z grid, :attr:`Optics.psf_z_step`).
 
+Field-dependent focus (default off): a real objective's focal surface is not
+a plane. :attr:`Optics.field_curvature` (Petzval curvature) and
+:attr:`Optics.field_tilt` (a tilted sample or coverslip) give its height
+above the nominal focal plane at a lateral position (x, y) of the sample,
+
+    z_f(x, y) = C (r / R)^2 + T_x (x - x_c) / R + T_y (y - y_c) / R,
+
+``r`` the distance from the optical axis (x_c, y_c) (:attr:`Optics.field_center`,
+default the centre of the rendered frame), ``R`` = :attr:`Optics.field_radius`
+and C, T_x, T_y in m (the focal shift at ``R`` from the axis). A particle at
+height z is then rendered with the defocus ``z - focal_plane - z_f(x, y)``
+(:meth:`Optics.focal_shift`): the same image as a particle ``z_f`` lower on
+the axis, so a calibration recorded at one place in the field reads z off by
+``-z_f`` elsewhere (what :mod:`ptrack.gdpt.field` corrects). The PSF itself
+does not change across the field (no field-dependent astigmatism or coma).
+
 Approximations (stated, not hidden): scalar diffraction with a uniform
 (unapodised) pupil; no spherical aberration from the refractive-index
 mismatch between the air objective and the water sample (the defocus phase
@@ -82,6 +98,20 @@ class Optics:
     psf_margin : float
         Extra patch radius beyond the geometric defocus blur, in units of the
         Airy radius ``0.61 lambda / NA`` (tails of the PSF kept around each particle).
+    field_curvature : float
+        Field curvature: height of the focal surface above the nominal focal
+        plane at :attr:`field_radius` from the optical axis, m (quadratic in
+        the distance from the axis). 0 = flat field (default).
+    field_tilt : (float, float)
+        Tilt of the focal surface: its height at :attr:`field_radius` from
+        the axis along +x and along +y, m. (0, 0) = none (default).
+    field_radius : float
+        Reference distance from the axis for ``field_curvature`` and
+        ``field_tilt``, m (default 50 um, about the half-diagonal of the
+        default 63x field).
+    field_center : (float, float) or None
+        (x, y) of the optical axis in the sample, m (table coordinates, from
+        the centre of pixel (0, 0)); None: the centre of the rendered frame.
     """
 
     na: float = 0.75
@@ -92,8 +122,13 @@ class Optics:
     astigmatism: float = 0.0
     psf_z_step: float = 50e-9
     psf_margin: float = 8.0
+    field_curvature: float = 0.0
+    field_tilt: tuple = (0.0, 0.0)
+    field_radius: float = 50e-6
+    field_center: tuple | None = None
 
     def __post_init__(self):
+        self._check_field()
         for name in ("na", "wavelength", "medium_index", "immersion_index", "magnification", "psf_z_step", "psf_margin"):
             check_positive(f"optics.{name}", getattr(self, name))
         if not math.isfinite(float(self.astigmatism)):
@@ -125,8 +160,65 @@ class Optics:
         s = self.na / self.medium_index
         return s / math.sqrt(1.0 - s * s)
 
+    def _check_field(self):
+        """Validate (and normalise to floats / tuples) the field-dependent focus parameters."""
+        if not math.isfinite(float(self.field_curvature)):
+            raise UserError(f"optics.field_curvature = {self.field_curvature!r} is not finite",
+                            "give the focal shift at field_radius in m (0 for a flat field)")
+        self.field_curvature = float(self.field_curvature)
+        for name, fix in (("field_tilt", "give (tx, ty): the focal shift at field_radius along x and y, m"),
+                          ("field_center", "give (x, y) of the optical axis in m, or None for the frame centre")):
+            v = getattr(self, name)
+            if v is None and name == "field_center":
+                continue
+            try:
+                a, b = (float(u) for u in v)
+            except (TypeError, ValueError):
+                raise UserError(f"optics.{name} = {v!r} is not two numbers", fix) from None
+            if not (math.isfinite(a) and math.isfinite(b)):
+                raise UserError(f"optics.{name} = {v!r} is not finite", fix)
+            setattr(self, name, (a, b))
+        check_positive("optics.field_radius", self.field_radius)
+
+    @property
+    def field_dependent(self) -> bool:
+        """True when the focal surface is not flat (field curvature or tilt set)."""
+        return self.field_curvature != 0.0 or self.field_tilt != (0.0, 0.0)
+
+    def focal_shift(self, x, y, center=None):
+        """Height of the focal surface above the nominal focal plane at sample position (x, y), m.
+
+        Parameters
+        ----------
+        x, y : float or array_like
+            Lateral position in the sample, m (table coordinates).
+        center : (float, float), optional
+            (x, y) of the optical axis, m, used when :attr:`field_center` is
+            None (the renderer passes the centre of its frame); default (0, 0).
+
+        Returns
+        -------
+        ndarray (float64, the broadcast shape of x and y)
+            ``C (r/R)^2 + T_x (x - x_c)/R + T_y (y - y_c)/R``; exactly 0 when
+            the field is flat, so a particle's defocus is unchanged bit for bit.
+        """
+        x = np.asarray(x, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        if not self.field_dependent:
+            return np.zeros(np.broadcast(x, y).shape)
+        xc, yc = self.field_center if self.field_center is not None else (center if center is not None else (0.0, 0.0))
+        u = (x - float(xc)) / self.field_radius
+        v = (y - float(yc)) / self.field_radius
+        return self.field_curvature * (u * u + v * v) + self.field_tilt[0] * u + self.field_tilt[1] * v
+
     def to_dict(self) -> dict:
-        return asdict(self)
+        """The parameters as a dict (``Optics(**d)`` rebuilds it). The field-dependent focus keys are left out
+        while the field is flat and the axis not set, so the params.json of an existing render is unchanged."""
+        d = asdict(self)
+        if not self.field_dependent and self.field_center is None and self.field_radius == 50e-6:
+            for k in ("field_curvature", "field_tilt", "field_radius", "field_center"):
+                d.pop(k)
+        return d
 
 
 def sample_pixel_size(optics: Optics, camera_pixel: float) -> float:
