@@ -715,7 +715,7 @@ def plot_comparison(comp: dict, out_dir) -> dict:
             ax.set_xscale("log")
             ax.set_yscale("log")
             ax.set_xlabel("lag (s)")
-            ax.set_ylabel("MSD (um^2)")
+            ax.set_ylabel("MSD (µm²)")
             ax.set_title(f"MSD {k[4:]}{verdict(k)}", fontsize=9)
             ax.legend(fontsize=8)
         save(fig, "msd")
@@ -727,7 +727,7 @@ def plot_comparison(comp: dict, out_dir) -> dict:
             ax.errorbar(x + (j - 0.5) * 0.2, [q[k][s]["D"] * 1e12 for k in dk],
                         [Z95 * q[k][s]["D_err"] * 1e12 for k in dk], fmt="o", color=col, capsize=3, label=lab)
         ax.set_xticks(x, [f"{q[k]['axis']}{verdict(k)}" for k in dk], fontsize=8)
-        ax.set_ylabel("D (um^2/s), 95 % interval")
+        ax.set_ylabel("D (µm²/s), 95 % interval")
         ax.set_title("diffusion coefficient", fontsize=9)
         ax.legend(fontsize=8)
         save(fig, "D")
@@ -738,7 +738,7 @@ def plot_comparison(comp: dict, out_dir) -> dict:
             for s, col, lab in (("a", _COL[0], a), ("b", _COL[1], b)):
                 v = np.sort(np.asarray(cv[k][s])) * 1e12
                 ax.step(v, np.arange(1, len(v) + 1) / len(v), where="post", color=col, label=f"{lab} ({len(v)})")
-            ax.set_xlabel("per-particle D (um^2/s)")
+            ax.set_xlabel("per-particle D (µm²/s)")
             ax.set_ylabel("cumulative fraction")
             ax.set_title(f"D per particle, {k.rsplit('_', 1)[1]}{verdict(k)}", fontsize=9)
             ax.legend(fontsize=8)
@@ -758,8 +758,8 @@ def plot_comparison(comp: dict, out_dir) -> dict:
                 ax.semilogy(x, np.asarray(d["b_density"]) * 1e-6 + 1e-9, "--", color=f"C{2 * j}",
                             label=f"{b}; alpha2{verdict(key2)}")
             ax.set_ylim(bottom=1e-4)
-            ax.set_xlabel(f"step d{c} (um)")
-            ax.set_ylabel("density (1/um)")
+            ax.set_xlabel(f"step d{c} (µm)")
+            ax.set_ylabel("density (1/µm)")
             ax.set_title(f"van Hove {c} (solid {a}, dashed {b})", fontsize=9)
             ax.legend(fontsize=6)
         save(fig, "van_hove")
@@ -788,7 +788,7 @@ def plot_comparison(comp: dict, out_dir) -> dict:
                         fmt="o", color=col, capsize=3, label=lab)
         ax.axhline(0, color="k", lw=0.5)
         ax.set_xticks(x, [f"v{q[k]['axis']}{verdict(k)}" for k in dr], fontsize=8)
-        ax.set_ylabel("drift velocity (um/s), 95 %")
+        ax.set_ylabel("drift velocity (µm/s), 95 %")
         ax.set_title("ensemble drift", fontsize=9)
         ax.legend(fontsize=8)
         save(fig, "drift")
@@ -803,8 +803,8 @@ def plot_comparison(comp: dict, out_dir) -> dict:
                         capsize=2, label=f"{a} v{c}{verdict(k)}")
             ax.errorbar(z + 0.05, np.asarray(d["b"]) * 1e6, Z95 * np.asarray(d["b_err"]) * 1e6, fmt="s--",
                         color=f"C{2 * j}", capsize=2, label=f"{b} v{c}")
-        ax.set_xlabel("height z (um)")
-        ax.set_ylabel("v (um/s), 95 %")
+        ax.set_xlabel("height z (µm)")
+        ax.set_ylabel("v (µm/s), 95 %")
         ax.set_title("drift against height", fontsize=9)
         ax.legend(fontsize=6)
         save(fig, "v_vs_height")
@@ -814,7 +814,7 @@ def plot_comparison(comp: dict, out_dir) -> dict:
         z = np.asarray(d["z_centres"]) * 1e6
         ax.step(z, d["a"], where="mid", color=_COL[0], label=a)
         ax.step(z, d["b"], where="mid", color=_COL[1], label=b)
-        ax.set_xlabel("z (um)")
+        ax.set_xlabel("z (µm)")
         ax.set_ylabel("fraction of rows")
         ax.set_title(f"height distribution{verdict('height_z')}", fontsize=9)
         ax.legend(fontsize=8)
@@ -836,11 +836,11 @@ def _fmt(v, unit=""):
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "-"
     if unit == "m^2/s":
-        return f"{v * 1e12:.4g} um^2/s"
+        return f"{v * 1e12:.4g} µm²/s"
     if unit == "m/s":
-        return f"{v * 1e6:.3g} um/s"
+        return f"{v * 1e6:.3g} µm/s"
     if unit == "m":
-        return f"{v * 1e6:.3g} um"
+        return f"{v * 1e6:.3g} µm"
     return f"{v:.3g}"
 
 
@@ -850,19 +850,19 @@ def _main_value(r: dict, s: str) -> str:
         return "-"
     q = r["quantity"]
     if q == "D":
-        return f"{v['D'] * 1e12:.4g} &plusmn; {v['D_err'] * 1e12:.2g} um&sup2;/s"
+        return f"{v['D'] * 1e12:.4g} &plusmn; {v['D_err'] * 1e12:.2g} µm²/s"
     if q == "msd":
-        return f"{v['msd_first_lag'] * 1e12:.3g} um&sup2; (first lag)"
+        return f"{v['msd_first_lag'] * 1e12:.3g} µm² (first lag)"
     if q == "D_distribution":
-        return f"median {v['median'] * 1e12:.3g} um&sup2;/s (n={v['n_particles']})"
+        return f"median {v['median'] * 1e12:.3g} µm²/s (n={v['n_particles']})"
     if q == "van_hove":
-        return f"rms {v['rms_step'] * 1e6:.3g} um ({v['n_steps']} steps)"
+        return f"rms {v['rms_step'] * 1e6:.3g} µm ({v['n_steps']} steps)"
     if q == "alpha2":
         return f"{v['alpha2']:.3f} &plusmn; {v['alpha2_se']:.2g}"
     if q == "drift":
-        return f"{v['v'] * 1e6:.3g} &plusmn; {v['v_err'] * 1e6:.2g} um/s"
+        return f"{v['v'] * 1e6:.3g} &plusmn; {v['v_err'] * 1e6:.2g} µm/s"
     if q == "height":
-        return f"median {v['median_z'] * 1e6:.3g} um"
+        return f"median {v['median_z'] * 1e6:.3g} µm"
     if q == "deposition":
         return f"{v['fraction_deposited']:.2f} deposited"
     return html.escape(", ".join(f"{k}={_fmt(x)}" for k, x in v.items()))
