@@ -127,3 +127,70 @@ def test_study_rejects_bad_option(capsys):
 
     assert main(["study", "deposition", "--example", "1", "--cn-factor", "0.5", "--quick"]) == 2
     assert "cn-factor" in capsys.readouterr().err
+
+
+def test_epd_order_resumed_case_equals_uninterrupted(monkeypatch):
+    import sim.studies.epd_order as eo
+
+    monkeypatch.setattr(eo, "CHUNK_STEPS", 1000)
+    case = dict(eo.DEFAULTS, pe=180.0, a_over_lambda=5.0, n_particles=60, seed=7, rep=0, substrate="contact")
+    states = []
+    full = eo.run_case(case, checkpoint=lambda s: states.append(s.get_state()) if not states else None)
+    assert int(states[0]["step"]) == 1000 and full["steps"] > 2000
+    assert eo.run_case(case, state=states[0]) == full  # bit-identical continuation from the checkpoint
+
+
+def test_epd_order_case_files_are_skipped_on_rerun_and_checked(tmp_path, monkeypatch):
+    import sim.studies.epd_order as eo
+    from ptrack.errors import UserError
+
+    calls = []
+
+    def fake(case, checkpoint=None, state=None, progress=None):
+        calls.append(case["seed"])
+        return {"pe": case["pe"], "a_over_lambda": case["a_over_lambda"], "n_particles": case["n_particles"],
+                "steps": 1, "solid_fraction": 0.5, "solid_fraction_interior": 0.5, "q6_mean": 0.4}
+
+    monkeypatch.setattr(eo, "run_case", fake)
+    case = dict(eo.DEFAULTS, pe=60.0, a_over_lambda=5.0, n_particles=100, seed=3, rep=0, substrate="contact")
+    r1 = eo.run_case_in(case, tmp_path)
+    r2 = eo.run_case_in(case, tmp_path)
+    assert calls == [3] and r1 == r2  # the finished case is read back, not run again
+    assert not list(tmp_path.glob("*.lock")) and len(eo.collect(tmp_path)) == 1
+    with pytest.raises(UserError, match="another case"):
+        eo.run_case_in(dict(case, seed=4), tmp_path)
+
+
+def test_epd_order_trend_test_finds_a_known_slope_and_no_slope():
+    import pandas as pd
+
+    from sim.studies.epd_order import summarise
+
+    rng = np.random.default_rng(0)
+    pe = np.repeat([20.0, 60.0, 180.0, 540.0], 3)
+    noise = 0.01 * rng.standard_normal(len(pe))
+    rows = dict(pe=np.r_[pe, pe], a_over_lambda=np.r_[np.full(12, 5.0), np.full(12, 10.0)],
+                solid_fraction=np.r_[0.8 - 0.2 * np.log10(pe) + noise, 0.5 + noise],
+                n_particles=100, steps=1, q6_mean=0.4)
+    rows["solid_fraction_interior"] = rows["solid_fraction"]
+    table, trend = summarise(pd.DataFrame(rows))
+    assert abs(trend[5.0]["slope"] + 0.2) < 3 * trend[5.0]["se"] and trend[5.0]["p"] < 1e-6
+    assert trend[10.0]["p"] > 0.01 and abs(trend[10.0]["slope"]) < 3 * trend[10.0]["se"] + 1e-12
+    assert list(table.n_rep) == [3] * 8
+    np.testing.assert_allclose(table.order_sem, table.order_sd / np.sqrt(3))
+
+
+def test_epd_order_command_writes_cases_and_collects_them(tmp_path, capsys):
+    from ptrack.cli import main
+
+    out = tmp_path / "o"
+    args = ["study", "epd-order", "--no-dask", "--particles", "40", "--pe", "60", "180", "--replicates", "2",
+            "--a-over-lambda", "5", "--out", str(out)]
+    assert main(args + ["--json", str(tmp_path / "a.json")]) == 0
+    assert len(list((out / "cases").glob("*.json"))) == 4 and not list((out / "cases").glob("*.ckpt.npz"))
+    assert main(["study", "epd-order", "--collect", "--out", str(out), "--json", str(tmp_path / "b.json")]) == 0
+    a, b = (json.loads((tmp_path / f).read_text()) for f in ("a.json", "b.json"))
+    assert a["table"] == b["table"] and b["n_cases_finished"] == 4
+    assert "a/lambda_D = 5: order" in capsys.readouterr().out
+    assert (out / "epd_order.png").stat().st_size > 10000
+    assert main(["study", "epd-order", "--collect", "--out", str(tmp_path / "none")]) == 2
