@@ -1,0 +1,224 @@
+"""Stage drift from the frames themselves: phase correlation against a running reference.
+
+The tracks-based drift (:func:`ptrack.motion.drift.drift`) is the mean
+displacement of the linked particles; it needs linking, and linking breaks
+when the stage jumps farther than the search range. The frames carry the
+drift directly: a rigid shift of the field of view is a linear phase ramp in
+their Fourier transforms. :func:`frame_drift` registers each frame with
+scikit-image's ``phase_cross_correlation`` (sub-pixel, by upsampled DFT
+around the correlation peak) against a *running reference*: the mean of the
+last few frames, each moved back by its own estimated drift. Against the
+first frame alone, the particles' own motion blurs the correlation peak
+until it is lost; the running reference keeps the lag short.
+
+What a correlation of the images measures is the intensity-weighted mean
+displacement of what is in them: the stage drift plus the mean random
+displacement of the moving particles (exactly as for the tracks-based
+estimate), and nothing of what does not move with the stage. Patterns fixed
+to the camera (uneven illumination, dust on the optics, the frame border)
+pull the estimate towards zero, so each frame is band-passed first (its
+smooth background removed, pixel noise smoothed) and tapered at the border.
+
+The table is in the trajectories table's units and sign convention: ``x``,
+``y`` (m) is where the content of frame 0 has moved to in frame ``frame``;
+:func:`subtract_frame_drift` removes it from a trajectories table.
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import numpy as np
+import pandas as pd
+
+from ..errors import UserError, check_positive
+
+__all__ = ["frame_drift", "subtract_frame_drift"]
+
+
+def _taper(shape, width):
+    # separable Tukey window: 1 inside, a cosine ramp over `width` px at each border
+    out = []
+    for n in shape:
+        w = np.ones(n)
+        k = int(min(width, n // 4))
+        if k > 0:
+            ramp = 0.5 * (1 - np.cos(np.pi * (np.arange(k) + 0.5) / k))
+            w[:k] = ramp
+            w[n - k:] = ramp[::-1]
+        out.append(w)
+    return np.outer(out[0], out[1])
+
+
+def _band(shape, sigma_low, sigma_high):
+    # Fourier-domain band-pass: a Gaussian smoothing of sigma_low px minus the background of sigma_high px
+    ky = np.fft.fftfreq(shape[0])[:, None]
+    kx = np.fft.fftfreq(shape[1])[None, :]
+    k2 = (2 * np.pi) ** 2 * (kx ** 2 + ky ** 2)
+    return np.exp(-0.5 * k2 * sigma_low ** 2) - np.exp(-0.5 * k2 * sigma_high ** 2)
+
+
+def _shift_spectrum(F, dy, dx):
+    # the spectrum of the image moved by (dy, dx) px (rows, columns)
+    ky = np.fft.fftfreq(F.shape[0])[:, None]
+    kx = np.fft.fftfreq(F.shape[1])[None, :]
+    return F * np.exp(-2j * np.pi * (ky * dy + kx * dx))
+
+
+def _refine(P, dy, dx, h):
+    # parabolic peak of the cross-correlation c(d) = Re sum_k P(k) exp(2 pi i k.d) / N on a 3x3 stencil of step h
+    # px around (dy, dx): three DFT rows and columns (3 H W operations), not a full upsampled block
+    H, W = P.shape
+    ky = np.fft.fftfreq(H)
+    kx = np.fft.fftfreq(W)
+    o = np.array([-h, 0.0, h])
+    Ey = np.exp(2j * np.pi * (dy + o)[:, None] * ky[None, :])
+    Ex = np.exp(2j * np.pi * kx[:, None] * (dx + o)[None, :])
+    c = np.real(Ey @ P @ Ex)
+    out = []
+    for m, z in ((c[:, 1], dy), (c[1, :], dx)):
+        den = m[0] - 2 * m[1] + m[2]
+        out.append(z + (0.5 * h * (m[0] - m[2]) / den if den < 0 else 0.0))
+    return out[0], out[1]
+
+
+def frame_drift(frames, pixel_size: float, frame_interval: float | None = None, upsample: int = 10,
+                window: int = 5, reference: str = "running", bandpass=(1.0, 10.0), taper: float = 16.0,
+                first_frame: int = 0) -> pd.DataFrame:
+    """Per-frame rigid stage drift by phase correlation, sub-pixel.
+
+    Parameters
+    ----------
+    frames : iterable of 2D arrays
+        The movie, frame by frame (read lazily: only ``window`` spectra are
+        kept). All frames the same shape, any polarity.
+    pixel_size : float
+        Sample-plane pixel size (m per px).
+    frame_interval : float, optional
+        s per frame, for the ``t`` column (NaN if not given).
+    upsample : int
+        ``phase_cross_correlation`` locates the peak on a grid of
+        1/``upsample`` px (its upsampled DFT); a parabola through the
+        correlation at the grid points either side then refines it (the
+        grid alone leaves a uniform error of +-1/(2 upsample) px, which a
+        running reference accumulates; the upsampled block costs
+        ``1.5 upsample`` x the frame per frame, the parabola 3x).
+    window : int
+        Frames in the running reference (the last ``window`` frames, each
+        moved back by its estimated drift, averaged).
+    reference : {"running", "first"}
+        Register against the running reference, or against frame 0 alone
+        (exact for a static scene: no accumulation of errors; wrong when
+        the particles move by more than their size over the movie).
+    bandpass : (float, float)
+        Gaussian widths (px) of the band-pass applied before correlating:
+        pixel-noise smoothing and the background (illumination) scale.
+    taper : float
+        Width (px) of the cosine taper at the frame border.
+    first_frame : int
+        Frame number of the first frame.
+
+    Returns
+    -------
+    DataFrame
+        One row per frame: ``frame``, ``t`` (s), ``x``, ``y`` (m: the
+        displacement of the content of frame 0, along columns and rows),
+        ``x_px``, ``y_px`` (the same in px) and ``error`` (scikit-image's
+        translation-invariant normalised RMS error of the registration, 0 for
+        a perfect match). Columns ``frame``, ``x``, ``y`` are those of
+        :func:`ptrack.motion.drift.drift`'s table, so
+        :func:`ptrack.motion.drift.subtract_drift` takes it too.
+
+    Raises
+    ------
+    UserError
+        No frame, frames that are not 2D or differ in shape, bad parameters.
+    """
+    from skimage.registration import phase_cross_correlation
+
+    px = check_positive("pixel_size", pixel_size)
+    dt = np.nan if frame_interval is None else check_positive("frame_interval", frame_interval)
+    upsample = int(upsample)
+    window = int(window)
+    if upsample < 1 or window < 1:
+        raise UserError(f"upsample = {upsample} and window = {window} must be at least 1",
+                        "give positive integers (defaults 10 and 5)")
+    if reference not in ("running", "first"):
+        raise UserError(f"reference = {reference!r} is not known", "use 'running' or 'first'")
+    s_lo, s_hi = (float(v) for v in bandpass)
+    if not (0 <= s_lo < s_hi):
+        raise UserError(f"bandpass = {bandpass} must be (low, high) px with 0 <= low < high",
+                        "give e.g. (1, 10): noise smoothing and background widths")
+    shape = None
+    band = taper_w = None
+    past = deque(maxlen=window)      # spectra of past frames, already moved back to frame 0
+    rows = []
+    for k, f in enumerate(frames):
+        f = np.asarray(f, np.float64)
+        if f.ndim != 2:
+            raise UserError(f"frame {k} has shape {f.shape}, not 2D", "give the movie as a sequence of 2D frames")
+        if shape is None:
+            shape = f.shape
+            band = _band(shape, s_lo, s_hi)
+            taper_w = _taper(shape, taper)
+        elif f.shape != shape:
+            raise UserError(f"frame {k} has shape {f.shape}, frame 0 {shape}", "give frames of one size")
+        F = np.fft.fft2((f - f.mean()) * taper_w) * band
+        if k == 0:
+            dy = dx = err = 0.0
+            ref0 = F
+        else:
+            ref = ref0 if reference == "first" else sum(past) / len(past)
+            # the shift that registers this frame with the reference is minus its drift
+            shift, err, _ = phase_cross_correlation(ref, F, space="fourier", upsample_factor=upsample,
+                                                    normalization=None)
+            sy, sx = _refine(ref * np.conj(F), float(shift[0]), float(shift[1]), 1.0 / upsample)
+            dy, dx = -sy, -sx
+        past.append(_shift_spectrum(F, -dy, -dx))
+        rows.append((first_frame + k, dx, dy, float(err)))
+    if not rows:
+        raise UserError("no frame to estimate the drift from", "give a movie with at least one frame")
+    fr = np.array([r[0] for r in rows], np.int64)
+    dx = np.array([r[1] for r in rows])
+    dy = np.array([r[2] for r in rows])
+    return pd.DataFrame({"frame": fr, "t": fr * dt, "x": dx * px, "y": dy * px, "x_px": dx, "y_px": dy,
+                         "error": np.array([r[3] for r in rows])})
+
+
+def subtract_frame_drift(df: pd.DataFrame, drift_table: pd.DataFrame) -> pd.DataFrame:
+    """Remove the drift of :func:`frame_drift` from a trajectories (or feature) table.
+
+    ``x``, ``y`` (m) go through :func:`ptrack.motion.drift.subtract_drift`
+    (frames outside the drift table take its first/last value); ``x_px``,
+    ``y_px``, when present, are corrected by the same amounts in px.
+
+    Parameters
+    ----------
+    df : DataFrame
+        Trajectories table (``frame``, ``x``, ``y`` in m), or a feature table
+        with only ``frame``, ``x_px``, ``y_px``.
+    drift_table : DataFrame
+        Output of :func:`frame_drift`.
+
+    Returns
+    -------
+    DataFrame
+        A corrected copy of ``df``.
+    """
+    from ..motion.drift import subtract_drift
+
+    need = {"frame", "x", "y", "x_px", "y_px"}
+    if not need <= set(drift_table.columns):
+        raise UserError(f"the drift table lacks {sorted(need - set(drift_table.columns))}",
+                        "give the output of ptrack.image.drift.frame_drift")
+    if "frame" not in df.columns or not ({"x", "y"} <= set(df.columns) or {"x_px", "y_px"} <= set(df.columns)):
+        raise UserError("the table has no frame and x, y (m) or x_px, y_px (px) columns",
+                        "give a trajectories table (ptrack.link.to_trajectories) or a feature table")
+    out = subtract_drift(df, drift_table[["frame", "x", "y"]]) if {"x", "y"} <= set(df.columns) else df.copy()
+    fd = drift_table["frame"].to_numpy(float)
+    fr = df["frame"].to_numpy(float)
+    for c in ("x_px", "y_px"):
+        if c in df.columns:
+            out[c] = df[c].to_numpy(float) - np.interp(fr, fd, drift_table[c].to_numpy(float))
+    out.attrs.update(df.attrs)
+    return out
