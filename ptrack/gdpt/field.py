@@ -445,7 +445,7 @@ def build_field_calibration(stack, z, pixel_size=None, calib=None, basis: str = 
     return fc
 
 
-def load_field_calibration(path, basis: str = "auto", locate_options: dict | None = None,
+def load_field_calibration(path, calib=None, basis: str = "auto", locate_options: dict | None = None,
                            **calibration_options) -> FieldCalibration:
     """Read a calibration stack file and build its field-dependent calibration.
 
@@ -453,10 +453,13 @@ def load_field_calibration(path, basis: str = "auto", locate_options: dict | Non
     ----------
     path : path
         Calibration stack (any format of :func:`ptrack.io.open_movie`).
+    calib : ptrack.calibration.Calibration, optional
+        Already loaded from ``path`` by :func:`ptrack.calibration.load_calibration`
+        (not built twice); else loaded here with ``calibration_options``.
     basis : str
         See :func:`build_field_calibration`.
     locate_options : dict, optional
-        Passed to :func:`ptrack.calibration.locate_frame_3d`.
+        Passed to :func:`ptrack.calibration.locate_frame_3d` (the movie's: ``snr``, ``cm_min``...).
     **calibration_options
         Passed to :func:`ptrack.calibration.load_calibration` (heights:
         ``z_csv``, ``z_step``, ``z0``; ``pixel_size``, ``brightfield``...).
@@ -468,20 +471,34 @@ def load_field_calibration(path, basis: str = "auto", locate_options: dict | Non
     from ..calibration import load_calibration
     from ..io import open_movie
 
-    cal = load_calibration(path, **calibration_options)
+    cal = calib if calib is not None else load_calibration(path, **calibration_options)
     with open_movie(path, pixel_size=calibration_options.get("pixel_size")) as mv:
         stack = np.stack([mv[i] for i in range(len(mv))])
     z = cal.info.get("stack_z")
     if z is None:
-        # heights of every page in file order (load_calibration keeps only the pages it used): pages used +
-        # rejected must be all of them, and the file is taken in increasing z (as stacks are recorded)
-        used = np.asarray(cal.info["page_z"], np.float64)
-        if len(used) + len(cal.info.get("rejected", {})) != len(stack) or cal.info.get("rejected"):
-            raise UserError(f"the heights of the pages of {path} are not known page by page",
-                            "give the stack in memory to ptrack.gdpt.field.build_field_calibration with its z")
-        z = used
+        z = _stack_heights(path, len(stack), calibration_options)
     return build_field_calibration(stack, np.asarray(z, np.float64), cal.pixel_size, calib=cal, basis=basis,
                                    **(locate_options or {}))
+
+
+def _stack_heights(path, n_pages: int, opts: dict) -> np.ndarray:
+    """Heights of every page in file order, found as :func:`ptrack.calibration.load_calibration` finds them
+    (used when its Calibration does not carry ``info["stack_z"]``)."""
+    from ..calibration import read_calib_z
+    from .heights import heights_from_metadata, z_csv_beside
+
+    if opts.get("z_csv") is not None:
+        return read_calib_z(opts["z_csv"], n_pages)
+    if opts.get("z_step") is not None:
+        return float(opts.get("z0", 0.0)) + float(opts["z_step"]) * np.arange(n_pages)
+    beside = z_csv_beside(path)
+    if beside is not None:
+        return read_calib_z(beside, n_pages)
+    meta = heights_from_metadata(path, n_pages, float(opts.get("z0", 0.0)))
+    if meta is None:
+        raise UserError("the heights of the calibration pages are not given",
+                        "give z_csv (columns page, z in m) or z_step, or put calib_z.csv beside the stack")
+    return np.asarray(meta[0], np.float64)
 
 
 def correct_z(table: pd.DataFrame, fcal: FieldCalibration, pixel_size: float | None = None,
