@@ -43,6 +43,7 @@ sys.path.insert(0, str(ROOT))
 from ptrack.calibration import build_calibration, locate_3d, load_calibration  # noqa: E402
 from ptrack.io import open_movie  # noqa: E402
 from ptrack.locate import cramer_rao_bound, locate, mortensen_sigma  # noqa: E402
+from ptrack.motion.truth import match_truth  # noqa: E402
 from ptrack.preprocess import prepare  # noqa: E402
 from ptrack.table import make_table  # noqa: E402
 from sim import render  # noqa: E402
@@ -65,13 +66,16 @@ def grid_truth(n_frames, shape, spacing, rng, margin=12, px=1.0, z=None):
 
 
 def match(found_xy, true_xy, r):
-    """Indices of mutual nearest pairs closer than r: (found_idx, true_idx)."""
-    if len(found_xy) == 0 or len(true_xy) == 0:
-        return np.zeros(0, int), np.zeros(0, int)
-    d1, i1 = cKDTree(true_xy).query(found_xy)
-    d2, i2 = cKDTree(found_xy).query(true_xy)
-    f = np.flatnonzero((d1 < r) & (i2[i1] == np.arange(len(found_xy))))
-    return f, i1[f]
+    """Indices of mutual nearest pairs closer than r in one frame: (found_idx, true_idx).
+
+    The one truth-matching rule of the project, :func:`ptrack.motion.truth.match_truth` with
+    ``mutual=True``, applied to two position arrays (px) of one frame.
+    """
+    f = np.asarray(found_xy, float).reshape(-1, 2)
+    t = np.asarray(true_xy, float).reshape(-1, 2)
+    fi, ti = match_truth(pd.DataFrame({"frame": 0, "x_px": f[:, 0], "y_px": f[:, 1]}),
+                         pd.DataFrame({"frame": 0, "x_px": t[:, 0], "y_px": t[:, 1]}), max_px=r, mutual=True)
+    return np.asarray(fi, int), np.asarray(ti, int)
 
 
 def section_a(quick):
