@@ -87,13 +87,16 @@ def locate_movie(movie, brightfield: bool | None = None, diameter: float | None 
     times = {"read": 0.0, "locate": 0.0, "z": 0.0}
     info = {"background": background, "snr": None if snr is None else float(snr),
             "gain": float(gain), "offset": float(offset), "read_noise": float(read_noise)}
+    # the frames of the movie share their noise and background maps (measured again every
+    # ptrack.image.detect.MAP_REFRESH frames, or when the background level moves)
+    maps = {}
     if brightfield is None:
         # polarity from the data (first frame), fixed for the movie
         t = time.perf_counter()
         first = movie[frames[0] if len(frames) else 0]
         times["read"] += time.perf_counter() - t
         t = time.perf_counter()
-        pol = detect(first, offset=offset)["polarity"]
+        pol = detect(first, offset=offset, cache=maps)["polarity"]
         times["locate"] += time.perf_counter() - t
         brightfield = bool(pol < 0)
         info["polarity_from"] = "data"
@@ -139,7 +142,7 @@ def locate_movie(movie, brightfield: bool | None = None, diameter: float | None 
                 df.insert(0, "frame", np.full(len(df), i, np.int64))
             elif multiscale and isinstance(bg, str) and bg == "spatial":
                 df = locate(raw, snr=snr, gain=gain, offset=offset, read_noise=read_noise,
-                            brightfield=brightfield, frame_no=i)
+                            brightfield=brightfield, frame_no=i, cache=maps)
                 times["locate"] += time.perf_counter() - t
             else:
                 img = None

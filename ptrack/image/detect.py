@@ -42,13 +42,16 @@ import numpy as np
 
 from ..errors import UserError
 
-__all__ = ["DEFAULT_SCALES", "FALSE_ALARM_RATE", "bandpass", "noise_maps", "false_alarm_threshold",
+__all__ = ["DEFAULT_SCALES", "FALSE_ALARM_RATE", "MAP_REFRESH", "bandpass", "noise_maps", "false_alarm_threshold",
            "detect"]
 
 #: Default scale ladder (Gaussian sigma of the spot, px): sqrt(2) steps from 1 to 4 px. Larger images (rings,
 #: strong defocus) are found at 4 px: a matched filter too small by 1.4-2x loses little SNR, and a sixth scale
 #: cost 10-20 % of the frame time.
 DEFAULT_SCALES = (1.0, 1.41, 2.0, 2.83, 4.0)
+#: Frames that share one measurement of the noise and background maps when :func:`detect` is given a cache
+#: (the maps follow the camera and the illumination, not the particles; measuring them costs ~40 % of a frame).
+MAP_REFRESH = 16
 #: Default false-alarm rate: expected false detections per pixel of an empty frame.
 FALSE_ALARM_RATE = 1e-6
 # surround of the band-pass, in units of the scale: 2 = two rungs of the sqrt(2) ladder, so the
@@ -91,6 +94,28 @@ def _blur_ladder(work, sigmas):
     return out
 
 
+@nb.njit(cache=True)
+def _tile_med_mad(sub, nh, nw, th, tw):
+    # median and 1.4826 x median absolute deviation of each th x tw tile of sub (float32, the medians of
+    # an even count average the two middle values, as numpy's); one buffer, no copy of the frame
+    med = np.empty((nh, nw), np.float32)
+    mad = np.empty((nh, nw), np.float32)
+    buf = np.empty(th * tw, np.float64)
+    for a in range(nh):
+        for b in range(nw):
+            n = 0
+            for i in range(a * th, (a + 1) * th):
+                for j in range(b * tw, (b + 1) * tw):
+                    buf[n] = sub[i, j]
+                    n += 1
+            m = np.float32(np.median(buf))
+            for k in range(n):
+                buf[k] = abs(np.float32(buf[k]) - m)
+            med[a, b] = m
+            mad[a, b] = np.float32(1.4826 * np.median(buf))
+    return med, mad
+
+
 def noise_maps(img, tile: int = 64, step: int = 2, what: str = "both", shape=None):
     """Local background (median) and noise (1.4826 MAD) of an image over tiles, interpolated to full size.
 
@@ -125,9 +150,7 @@ def noise_maps(img, tile: int = 64, step: int = 2, what: str = "both", shape=Non
     # tiles of the sub-sampled image: the remainder rows/columns join the last tile's statistics by
     # the interpolation (they are within one tile of it)
     th, tw = max(1, (H // nh) // step), max(1, (W // nw) // step)
-    b = np.ascontiguousarray(sub[:nh * th, :nw * tw]).reshape(nh, th, nw, tw).transpose(0, 2, 1, 3).reshape(nh, nw, -1)
-    med = np.median(b, axis=2).astype(np.float32)
-    mad = (1.4826 * np.median(np.abs(b - med[..., None]), axis=2)).astype(np.float32)
+    med, mad = _tile_med_mad(np.ascontiguousarray(sub[:nh * th, :nw * tw], np.float32), nh, nw, th, tw)
     # a tile of constant values (saturated, padded) has MAD 0: borrow the frame's typical noise
     if nh >= 3 and nw >= 3:
         # neighbouring tiles share the noise level: a 3x3 mean over the tile grid cuts the MAD's
@@ -219,27 +242,35 @@ def _best_over_scales(b1s, b2s, invs, sign, best, arg):
             x0[i, c] = min(int(xx), gw - 1)
             x1[i, c] = min(x0[i, c] + 1, gw - 1)
             wx[i, c] = xx - x0[i, c]
-    rowv = np.empty((ns, gwmax))
+    rowv = np.empty(gwmax)
+    iv = np.empty(w)
+    bz = np.empty(w)
+    bk = np.empty(w, np.int8)
     for r in range(h):
+        bz[:] = -np.inf
+        bk[:] = 0
+        # scale by scale along the row (contiguous inner loops); ties keep the finer scale
         for i in range(ns):
             gh, gw = invs[i].shape
             yy = min(max((r + 0.5) * gh / h - 0.5, 0.0), gh - 1.0)
             y0 = min(int(yy), gh - 1)
             y1 = min(y0 + 1, gh - 1)
             wy = yy - y0
+            g = invs[i]
             for j in range(gw):
-                rowv[i, j] = (1 - wy) * invs[i][y0, j] + wy * invs[i][y1, j]
+                rowv[j] = (1 - wy) * g[y0, j] + wy * g[y1, j]
+            for c in range(w):
+                iv[c] = (1 - wx[i, c]) * rowv[x0[i, c]] + wx[i, c] * rowv[x1[i, c]]
+            b1 = b1s[i]
+            b2 = b2s[i]
+            for c in range(w):
+                z = sign * (b1[r, c] - b2[r, c]) * iv[c]
+                if z > bz[c]:
+                    bz[c] = z
+                    bk[c] = i
         for c in range(w):
-            bz = -np.inf
-            bk = 0
-            for i in range(ns):
-                iv = (1 - wx[i, c]) * rowv[i, x0[i, c]] + wx[i, c] * rowv[i, x1[i, c]]
-                z = sign * (b1s[i][r, c] - b2s[i][r, c]) * iv
-                if z > bz:
-                    bz = z
-                    bk = i
-            best[r, c] = bz
-            arg[r, c] = bk
+            best[r, c] = bz[c]
+            arg[r, c] = bk[c]
 
 
 @nb.njit(cache=True)
@@ -347,7 +378,7 @@ def _suppress(rows, cols, scale, order, radius_factor, min_radius, ring):
 
 def detect(frame, scales=None, polarity: int | None = None, snr: float | None = None,
            rate: float = FALSE_ALARM_RATE, median: bool = True, tile: int = 32, edge: int = 2,
-           suppress: float = 2.0, offset: float = 0.0):
+           suppress: float = 2.0, offset: float = 0.0, cache: dict | None = None):
     """Detect particles of several sizes without tuning knobs.
 
     Parameters
@@ -377,6 +408,13 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
     offset : float
         Camera baseline (counts): the skewness correction of the threshold
         needs the background above it.
+    cache : dict, optional
+        A movie's frames share their noise and background maps (camera and
+        illumination): pass the same (initially empty) dict for every frame
+        and the maps are measured on one frame and reused for the next
+        :data:`MAP_REFRESH` - 1, and measured again sooner when the frame's
+        background level (median of a 1/64 sub-sample) moves by more than 3
+        of its standard errors + 1 %.
 
     Returns
     -------
@@ -401,22 +439,42 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
     H, W = work.shape
     ladder = sorted(set(scales) | {_SURROUND * x for x in scales})
     blurs = dict(zip(ladder, _blur_ladder(work, ladder)))
-    noise0 = None
-    invs = []
-    for s in scales:
-        # tiles hold ~150 correlation areas of the band-passed noise (side 12 s): a MAD from fewer
-        # independent samples scatters by several per cent, which multiplies the false-alarm rate
-        # (and, on large frames, at most ~256 tiles); ~600-1000 samples per tile fix the MAD to ~3 %
-        t_side = max(int(tile), int(12 * s), int(math.sqrt(H * W / 256.0)))
-        # ~256 samples per tile and ~64k per scale (the 3x3 tile smoothing brings the MAD to ~2.5 %)
-        st = max(1, t_side // 16, int(math.sqrt(H * W / 65536.0)))
-        # the band-pass has no response to a constant: its background is zero, only the noise is
-        # mapped, from the sub-sampled band-passed image
-        bsub = blurs[s][::st, ::st] - blurs[_SURROUND * s][::st, ::st]
-        inv = noise_maps(bsub, tile=t_side, step=st, what="grid", shape=(H, W))
-        if noise0 is None:
-            noise0 = float(1.0 / np.median(inv))
-        invs.append(inv)
+    # the noise and background maps describe the camera and the illumination, which a movie keeps from
+    # frame to frame: with a cache they are measured on one frame and reused for the next ones (see
+    # MAP_REFRESH), unless the frame's background level has moved
+    key = (H, W, scales, int(tile), bool(median))
+    level = float(np.median(work[::8, ::8]))
+    c = cache if cache is not None else {}
+    fresh = (c.get("key") != key or c.get("age", MAP_REFRESH) >= MAP_REFRESH
+             or abs(level - c["level"]) > 3.0 * c["level_noise"] + 0.01 * abs(c["level"]))
+    if fresh:
+        noise0 = None
+        invs = []
+        for s in scales:
+            # tiles hold ~150 correlation areas of the band-passed noise (side 12 s): a MAD from fewer
+            # independent samples scatters by several per cent, which multiplies the false-alarm rate
+            # (and, on large frames, at most ~256 tiles); ~600-1000 samples per tile fix the MAD to ~3 %
+            t_side = max(int(tile), int(12 * s), int(math.sqrt(H * W / 256.0)))
+            # ~256 samples per tile and ~64k per scale (the 3x3 tile smoothing brings the MAD to ~2.5 %)
+            st = max(1, t_side // 16, int(math.sqrt(H * W / 65536.0)))
+            # the band-pass has no response to a constant: its background is zero, only the noise is
+            # mapped, from the sub-sampled band-passed image
+            bsub = blurs[s][::st, ::st] - blurs[_SURROUND * s][::st, ::st]
+            inv = noise_maps(bsub, tile=t_side, step=st, what="grid", shape=(H, W))
+            if noise0 is None:
+                noise0 = float(1.0 / np.median(inv))
+            invs.append(inv)
+        # background and noise of the frame itself (the skew correction; the localiser's background)
+        rb, rn = noise_maps(np.ascontiguousarray(frame, np.float32),
+                            tile=max(int(tile), int(math.sqrt(H * W / 256.0))), step=2)
+        if cache is not None:
+            cache.clear()
+            cache.update(key=key, age=0, level=level, level_noise=1.25 * float(np.median(rn)) / math.sqrt(work[::8, ::8].size), invs=tuple(invs),
+                         noise0=noise0, rb=rb, rn=rn)
+    else:
+        invs, noise0, rb, rn = c["invs"], c["noise0"], c["rb"], c["rn"]
+    if cache is not None:
+        cache["age"] = cache.get("age", 0) + 1
 
     b1s = tuple(np.ascontiguousarray(blurs[s], np.float32) for s in scales)
     b2s = tuple(np.ascontiguousarray(blurs[_SURROUND * s], np.float32) for s in scales)
@@ -438,9 +496,6 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         polarity = 1 if score[0] >= score[1] else -1
     polarity = 1 if polarity >= 0 else -1
     best, k = best_map(polarity)
-    # background and noise of the frame itself (the skew correction; the localiser's background)
-    rb, rn = noise_maps(np.ascontiguousarray(frame, np.float32), tile=max(int(tile), int(math.sqrt(H * W / 256.0))),
-                        step=2)
     rows, cols = _maxima_snr(best, float(u), int(edge))
     rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
     kk = k[rows, cols]

@@ -89,7 +89,8 @@ def _hot_in_rois(raw, bg, ds, rows, cols, half, thr):
 def locate(frame, img=None, sigma: float | None = None, snr: float | None = None, separation: float | None = None,
            gain: float = 1.0, offset: float = 0.0, read_noise: float = 0.0, brightfield: bool | None = None,
            median: bool = True, min_photons: float = 0.0, split: bool = True, scales=None,
-           rate: float = FALSE_ALARM_RATE, centre: str = "auto", frame_no: int = 0) -> pd.DataFrame:
+           rate: float = FALSE_ALARM_RATE, centre: str = "auto", frame_no: int = 0,
+           cache: dict | None = None) -> pd.DataFrame:
     """Detect and localise the particles of one frame.
 
     With the defaults (``sigma=None``) nothing needs tuning: detection is
@@ -128,6 +129,10 @@ def locate(frame, img=None, sigma: float | None = None, snr: float | None = None
         opposite sign around it); the ``method`` column says which.
     frame_no : int
         Value of the ``frame`` column.
+    cache : dict, optional
+        Multi-scale path: one dict passed with every frame of a movie lets the
+        frames share their noise and background maps (see
+        :func:`ptrack.image.detect.detect`).
     gain, offset, read_noise
         Camera model (counts per photon, baseline counts, read noise e-).
     brightfield : bool
@@ -154,7 +159,7 @@ def locate(frame, img=None, sigma: float | None = None, snr: float | None = None
     if sigma is None:
         return _locate_multiscale(frame, snr=snr, gain=gain, offset=offset, read_noise=read_noise,
                                   brightfield=brightfield, median=median, min_photons=min_photons, scales=scales,
-                                  rate=rate, centre=centre, frame_no=frame_no)
+                                  rate=rate, centre=centre, frame_no=frame_no, cache=cache)
     snr = 7.0 if snr is None else float(snr)
     brightfield = bool(brightfield)
     if img is None and not brightfield:
@@ -290,7 +295,7 @@ def _ring_like(sub, rows, cols, scale, noise, out):
 
 
 def _locate_multiscale(frame, snr=None, gain=1.0, offset=0.0, read_noise=0.0, brightfield=None, median=True,
-                       min_photons=0.0, scales=None, rate=FALSE_ALARM_RATE, centre="auto", frame_no=0):
+                       min_photons=0.0, scales=None, rate=FALSE_ALARM_RATE, centre="auto", frame_no=0, cache=None):
     """The knob-free path of :func:`locate` (see there)."""
     if centre not in ("auto", "gauss", "radial"):
         raise UserError(f"centre = {centre!r} is not known", "use 'auto', 'gauss' or 'radial'")
@@ -298,7 +303,7 @@ def _locate_multiscale(frame, snr=None, gain=1.0, offset=0.0, read_noise=0.0, br
     if raw.dtype not in (np.uint8, np.uint16, np.float32, np.float64):
         raw = raw.astype(np.float32)
     pol = None if brightfield is None else (-1 if brightfield else 1)
-    det = detect(raw, scales=scales, polarity=pol, snr=snr, rate=rate, median=median, offset=offset)
+    det = detect(raw, scales=scales, polarity=pol, snr=snr, rate=rate, median=median, offset=offset, cache=cache)
     rows, cols, scale, polarity = det["rows"], det["cols"], det["scale"], det["polarity"]
     n = len(rows)
     # background-subtracted image, particles positive (dark particles: the background minus the frame)
@@ -308,7 +313,12 @@ def _locate_multiscale(frame, snr=None, gain=1.0, offset=0.0, read_noise=0.0, br
     noise = float(np.median(nzmap))
     if polarity > 0 and median and n:
         # isolated hot pixels would pull the likelihood fit of the raw counts: replaced by their 3x3 median
-        raw = repair_hot_pixels(raw, sub, median3(sub))
+        # (the rule of repair_hot_pixels, 8 noise sigmas, tested only inside the fit windows)
+        half_max = int(max(3, math.ceil(3 * float(np.max(scale))))) + 1
+        hr, hc, hv = _hot_in_rois(raw, bgmap, 1, rows, cols, half_max, 8.0 * noise_sigma(sub))
+        if len(hr):
+            raw = np.array(raw, copy=True)
+            raw[np.asarray(hr), np.asarray(hc)] = np.asarray(hv)
     ring = np.zeros(n, np.bool_)
     if n:
         _ring_like(np.ascontiguousarray(sub, np.float32), rows, cols, scale.astype(np.float64), noise, ring)
