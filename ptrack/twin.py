@@ -117,6 +117,39 @@ def measure_camera(movie, table: pd.DataFrame, brightfield: bool, gain: float, o
                       f"offset {offset:g} ADU, QE {qe:g}"}
 
 
+def twin_exposure(motion_blur: dict | None, frame_interval: float) -> tuple[float | None, float, int]:
+    """Camera exposure of the twin's movie from the blur the measured data imply.
+
+    A uniform exposure of length ``e`` in a frame of ``dt`` gives R = (e / dt) / 6, so the twin is rendered
+    with ``e = min(6 R, 1) dt`` when R is significant (above 2 of its errors and 0.03), else instantaneously.
+
+    Parameters
+    ----------
+    motion_blur : dict or None
+        ``{"R": ..., "R_err": ...}`` from :func:`infer_parameters` (None: not measurable).
+    frame_interval : float
+        s.
+
+    Returns
+    -------
+    (exposure, R, substeps)
+        Exposure in s (None: instantaneous), the R the twin's movie has (what its tracks are analysed
+        with; at most 1/6), and the motion-blur sub-positions per frame for the renderer (0: none).
+
+    Examples
+    --------
+    >>> e, R, n = twin_exposure({"R": 0.1, "R_err": 0.01}, 0.1)
+    >>> round(e, 12), R, n
+    (0.06, 0.1, 8)
+    >>> twin_exposure({"R": 0.02, "R_err": 0.01}, 0.1)
+    (None, 0.0, 0)
+    """
+    mb = motion_blur
+    if not (mb and mb["R"] > 2 * mb["R_err"] and mb["R"] > 0.03):
+        return None, 0.0, 0
+    return min(6 * mb["R"], 1.0) * frame_interval, min(float(mb["R"]), 1 / 6), 8     # R = (exposure / dt) / 6
+
+
 def _implied_motion_blur(table: pd.DataFrame, D: float, dt: float) -> dict | None:
     """R = (cov(dx_n, dx_n+1) + sigma^2) / (2 D dt): the blur the data imply, given the localiser's sigma (2D).
 
@@ -330,9 +363,8 @@ def infer_parameters(table: pd.DataFrame, temperature: float, viscosity: float, 
     mb = _implied_motion_blur(table, D, msd.frame_interval(table))
     out["motion_blur"] = mb
     # drift
-    comps = "xyz" if three_d else "xy"
     try:
-        ens = ensemble_velocity(particle_velocity(used, axes=comps, motion_blur=motion_blur), n_boot=500, seed=seed)
+        ens = ensemble_velocity(particle_velocity(used, axes=None, motion_blur=motion_blur), n_boot=500, seed=seed)
         out["drift"] = {r.axis: {"v": float(r.v), "v_err": float(r.v_err), "chi2_dof": float(r.chi2_dof),
                                  "n_particles": int(r.n_particles)} for r in ens.itertuples()}
     except UserError as exc:
@@ -660,6 +692,7 @@ def run_twin(movie, out_dir, track_kwargs: dict, temperature: float, viscosity: 
     from sim.scene import scene_from_dict
 
     from .compare import compare_tables, comparison_html, format_table, plot_comparison
+    from .motion import frame_interval
     from .pipeline import track_movie
     from .table import metadata, read_table, write_table
 
@@ -676,7 +709,7 @@ def run_twin(movie, out_dir, track_kwargs: dict, temperature: float, viscosity: 
         measured, tsum = measured_table, {}
     timings["track_movie_s"] = time.perf_counter() - t0
     meta = metadata(measured)
-    px, dt = float(meta["pixel_size"]), float(meta["frame_interval"])
+    px, dt = float(meta["pixel_size"]), frame_interval(measured)       # the one frame-interval rule
     shape = meta.get("frame_shape")
     n_frames = int(meta.get("n_frames") or measured["frame"].max() + 1)
     three_d = bool(np.isfinite(measured["z"].to_numpy(float)).any())
@@ -707,12 +740,9 @@ def run_twin(movie, out_dir, track_kwargs: dict, temperature: float, viscosity: 
     for k_cam, k_meas in (("background", "background_photons"), ("photons", "photons"), ("read_noise", "read_noise_e")):
         if k_cam not in (camera or {}) and math.isfinite(camm[k_meas]):
             cam[k_cam] = float(camm[k_meas])
-    mb = params.get("motion_blur")
-    substeps = 0
-    if mb and mb["R"] > 2 * mb["R_err"] and mb["R"] > 0.03:
-        # exposure from R = (exposure / dt) / 6 for a shutter open a fraction of the frame (uniform blur)
-        cam["exposure"] = min(6 * mb["R"], 1.0) * dt
-        substeps = 8
+    exposure, blur, substeps = twin_exposure(params.get("motion_blur"), dt)
+    if exposure is not None:
+        cam["exposure"] = exposure
     params["camera_measured"] = camm
     dof = opt["wavelength"] * opt["medium_index"] / opt["na"] ** 2
     sigma_model = 0.21 * opt["wavelength"] / opt["na"]
@@ -807,7 +837,6 @@ def run_twin(movie, out_dir, track_kwargs: dict, temperature: float, viscosity: 
         params["notes"] += [n for n in notes0 if n not in params["notes"]]
     params["calibration_history"] = history
     t5 = time.perf_counter()
-    blur = 0.0 if substeps == 0 else 1 / 6
     if render["view"].get("sticking"):
         # deposition compared like with like: the tracks' deposited rows found the same way (flag_stuck)
         # in the movie's and the twin's tracks; the truth has its own column
@@ -858,21 +887,21 @@ def headline_rows(result: dict) -> list[tuple[str, str]]:
     p = result["parameters"]
     rows = [("radius", _fmt_pm(result["radius_m"], result["radius_err_m"], 1e9, "nm")),
             ("viscosity", _fmt_pm(result["viscosity_Pa_s"], result["viscosity_err_Pa_s"], 1e3, "mPa s")),
-            ("D_xy (measured)", _fmt_pm(p["D"]["xy"], p["D_err"]["xy"], 1e12, "um&sup2;/s")),
+            ("D_xy (measured)", _fmt_pm(p["D"]["xy"], p["D_err"]["xy"], 1e12, "µm²/s")),
             ("wall ratio D/D0", f"{p['wall_ratio']:.4g}")]
     if p.get("drift"):
         for c, d in p["drift"].items():
-            rows.append((f"drift v{c}", _fmt_pm(d["v"], d["v_err"], 1e6, "um/s")))
+            rows.append((f"drift v{c}", _fmt_pm(d["v"], d["v_err"], 1e6, "µm/s")))
     if result.get("zeta_V") is not None:
         rows += [("zeta potential", _fmt_pm(result["zeta_V"], result["zeta_err_V"], 1e3, "mV")),
                  ("charge", _fmt_pm(result["charge_C"], result["charge_err_C"], 1 / 1.602176634e-19, "e")),
                  ("Henry f(R/lambda_D)", f"{p['henry_f']:.4f}")]
     if p.get("number_density_per_m2"):
-        rows.append(("number density", f"{p['number_density_per_m2'] * 1e-12:.4g} per um&sup2; "
+        rows.append(("number density", f"{p['number_density_per_m2'] * 1e-12:.4g} per µm² "
                                        f"({p['particles_per_frame']:.3g} per frame)"))
     if p.get("heights"):
         h = p["heights"]
-        rows.append(("start heights (uniform range)", f"{h['start_lo'] * 1e6:.3g} - {h['start_hi'] * 1e6:.3g} um"))
+        rows.append(("start heights (uniform range)", f"{h['start_lo'] * 1e6:.3g} - {h['start_hi'] * 1e6:.3g} µm"))
     c = p["camera_measured"]
     rows += [("background", f"{c['background_photons']:.4g} photons/px"),
              ("photons per particle", f"{c['photons']:.4g} (IQR {c['photons_iqr']:.3g})"),
