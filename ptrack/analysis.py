@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .errors import UserError, atomic_output, check_positive
+from .errors import UserError, atomic_output, check_positive, check_writable, missing_dirs, remove_empty_dirs
 from .motion import wall
 from .motion.anomalous import powerlaw_flags
 from .motion.cve import particle_diffusion
@@ -303,17 +303,10 @@ def analyze_table(table: pd.DataFrame, radius: float, viscosity: float, temperat
     return Analysis(summary=jsonable(summary), diffusion=res, per_particle=per, flags=flags, table=table, notes=notes)
 
 
-def check_writable_dir(path) -> Path:
-    """UserError now, not after the work, when a report folder cannot be created at ``path``."""
-    path = Path(path)
-    if path.exists() and not path.is_dir():
-        raise UserError(f"{path} exists and is not a folder", "give a folder for the report")
-    parent = path.parent if not path.exists() else path
-    while not parent.exists():
-        parent = parent.parent
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise UserError(f"cannot write in {parent}", "give a report folder you can write to")
-    return path
+def check_writable_dir(path, what: str = "--report") -> Path:
+    """UserError now, not after the work, when a report folder cannot be created at ``path``
+    (:func:`ptrack.errors.check_writable`, the one rule)."""
+    return check_writable(path, what, directory=True)
 
 
 @contextlib.contextmanager
@@ -327,12 +320,17 @@ def atomic_dir(path, last: str = "summary.json"):
     leaves ``path`` as it was and no temporary folder behind.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent))
+    created = missing_dirs(path.parent)  # removed again, if empty, when the report fails (a full disk)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent))
+    except BaseException:
+        remove_empty_dirs(created)
+        raise
     umask = os.umask(0)
     os.umask(umask)
-    os.chmod(tmp, 0o777 & ~umask)                 # mkdtemp makes 0700: honour the umask like mkdir
     try:
+        os.chmod(tmp, 0o777 & ~umask)             # mkdtemp makes 0700: honour the umask like mkdir
         yield tmp
         if not path.exists():
             os.replace(tmp, path)
@@ -342,6 +340,7 @@ def atomic_dir(path, last: str = "summary.json"):
         tmp.rmdir()
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
+        remove_empty_dirs(created)
         raise
 
 
@@ -414,7 +413,7 @@ def analyze_movie(movie, radius: float, viscosity: float, temperature: float, re
     if out is not None:
         if Path(out).is_dir():
             raise UserError(f"--out {out} is a folder", "give a file name for the trajectories table")
-        check_writable_dir(Path(out).parent)
+        check_writable_dir(Path(out).parent, "--out")
     track_summary = {}
     if table is None:
         from .pipeline import track_movie

@@ -74,23 +74,34 @@ def check_positive(name: str, value, allow_zero: bool = False) -> float:
     return v
 
 
-def _make_parents(directory: Path) -> list[Path]:
-    """``mkdir -p directory``; return the folders it created, outermost first."""
+def missing_dirs(path) -> list[Path]:
+    """The folders ``mkdir -p path`` would create (``path`` and the missing parents), outermost first."""
     missing = []
-    d = Path(directory)
+    d = Path(path)
     while not d.exists() and d != d.parent:
         missing.append(d)
         d = d.parent
-    directory.mkdir(parents=True, exist_ok=True)
     return missing[::-1]
 
 
-def _remove_if_empty(dirs) -> None:
+def _make_parents(directory: Path) -> list[Path]:
+    """``mkdir -p directory``; return the folders it created, outermost first."""
+    missing = missing_dirs(directory)
+    Path(directory).mkdir(parents=True, exist_ok=True)
+    return missing
+
+
+def remove_empty_dirs(dirs) -> None:
+    """Remove the folders ``dirs`` (outermost first, as :func:`missing_dirs` lists them) that are empty,
+    innermost first; stop at the first that is not empty (one already gone is skipped)."""
     for d in reversed(list(dirs)):
         try:
-            d.rmdir()
-        except OSError:  # not empty (or gone): leave it
+            Path(d).rmdir()
+        except FileNotFoundError:
+            continue
+        except OSError:  # not empty: leave it and its parents
             break
+
 
 
 def _open_exclusive(directory: Path, name: str) -> tuple[int, str]:
@@ -129,7 +140,7 @@ def atomic_output(path, mode: str = "wb"):
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
-        _remove_if_empty(created)
+        remove_empty_dirs(created)
         raise
 
 
@@ -184,11 +195,16 @@ def check_writable(path, what: str = "output", directory: bool = False, need_byt
 
 
 @contextlib.contextmanager
-def output_dir(path, what: str = "--out"):
-    """Create the output folder ``path`` for a command; remove it again if the command fails empty-handed.
+def output_dir(path, what: str = "--out", all_or_nothing: bool = False):
+    """Create the output folder ``path`` for a command; remove it again if the command fails.
 
-    Folders this call created are removed (innermost first) when the block
-    raises and they are still empty, so a refused run leaves no empty folder.
+    ``path`` is checked first (:func:`check_writable`). Folders this call
+    created are removed (innermost first) when the block raises and they are
+    still empty, so a refused run, or one stopped by a full disk, leaves no
+    empty folder. With ``all_or_nothing``, a folder this call created is
+    removed with the files the block wrote into it (a movie without its
+    ground truth is no use); in a folder that existed before, the files
+    already written stay (each is complete: :func:`atomic_output`).
     Yields the folder as a Path.
     """
     p = check_writable(path, what, directory=True)
@@ -196,7 +212,9 @@ def output_dir(path, what: str = "--out"):
     try:
         yield p
     except BaseException:
-        _remove_if_empty(created)
+        if all_or_nothing and created and created[-1] == p:
+            shutil.rmtree(p, ignore_errors=True)
+        remove_empty_dirs(created)
         raise
 
 

@@ -31,7 +31,7 @@ def add_arguments(p):
 
 
 def run(a) -> int:
-    from ptrack.errors import UserError
+    from ptrack.errors import UserError, output_dir
     from ptrack.table import read_table
     from sim.render.movie import render_movie
     from sim.render.optics import sample_pixel_size
@@ -41,44 +41,45 @@ def run(a) -> int:
     if len(table) == 0:
         raise UserError(f"trajectories table {a.trajectories} is empty", "give a table with at least one row")
     out = check_out_dir(a.out)
-    optics, camera = optics_camera_from_args(a, exposure=a.exposure)
-    px = sample_pixel_size(optics, camera.pixel_pitch)
-    if a.shape is None:
-        xmax = float(np.nanmax(table["x"].to_numpy())) / px
-        ymax = float(np.nanmax(table["y"].to_numpy())) / px
-        if xmax > 16384 or ymax > 16384 or xmax < 0 or ymax < 0:
-            raise UserError(f"trajectories span up to ({xmax:.0f}, {ymax:.0f}) px at {px * 1e9:.1f} nm/px",
-                            "give --shape H W (and positions in m)")
-        shape = (int(np.ceil(ymax)) + 16, int(np.ceil(xmax)) + 16)
-    else:
-        shape = tuple(a.shape)
-    paths = render_movie(table, out, shape, optics, camera, focal_plane=a.focal_plane, brightfield=brightfield_from_args(a),
-                         motion_blur_substeps=a.motion_blur, seed=a.seed, radius=a.radius, scatter_phase=a.scatter_phase,
-                         compression="zlib" if a.compress else None,
-                         extra_params={"command": "ptrack render " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["render"] else None,
-                                       "input": str(a.trajectories)})
-    params = json.loads(paths["params"].read_text())
-    nf = params["n_frames"]
-    pages = spread_indices(nf, 6)
-    from ptrack.table import read_table as _rt
+    with output_dir(out, "--out", all_or_nothing=True):  # no half folder if a write fails
+        optics, camera = optics_camera_from_args(a, exposure=a.exposure)
+        px = sample_pixel_size(optics, camera.pixel_pitch)
+        if a.shape is None:
+            xmax = float(np.nanmax(table["x"].to_numpy())) / px
+            ymax = float(np.nanmax(table["y"].to_numpy())) / px
+            if xmax > 16384 or ymax > 16384 or xmax < 0 or ymax < 0:
+                raise UserError(f"trajectories span up to ({xmax:.0f}, {ymax:.0f}) px at {px * 1e9:.1f} nm/px",
+                                "give --shape H W (and positions in m)")
+            shape = (int(np.ceil(ymax)) + 16, int(np.ceil(xmax)) + 16)
+        else:
+            shape = tuple(a.shape)
+        paths = render_movie(table, out, shape, optics, camera, focal_plane=a.focal_plane, brightfield=brightfield_from_args(a),
+                             motion_blur_substeps=a.motion_blur, seed=a.seed, radius=a.radius, scatter_phase=a.scatter_phase,
+                             compression="zlib" if a.compress else None,
+                             extra_params={"command": "ptrack render " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["render"] else None,
+                                           "input": str(a.trajectories)})
+        params = json.loads(paths["params"].read_text())
+        nf = params["n_frames"]
+        pages = spread_indices(nf, 6)
+        from ptrack.table import read_table as _rt
 
-    truth = _rt(paths["truth"])
-    overlay = []
-    for k in pages:
-        s = truth[truth["frame"] == k]
-        overlay.append((s["x_px"].to_numpy(), s["y_px"].to_numpy()))
-    # particles in one part of a large frame: preview that part, not a frame with the particles in a corner
-    from sim.render.options import crop_box
+        truth = _rt(paths["truth"])
+        overlay = []
+        for k in pages:
+            s = truth[truth["frame"] == k]
+            overlay.append((s["x_px"].to_numpy(), s["y_px"].to_numpy()))
+        # particles in one part of a large frame: preview that part, not a frame with the particles in a corner
+        from sim.render.options import crop_box
 
-    sel = truth[truth["frame"].isin(pages)]
-    r0, r1, c0, c1 = crop_box(sel["x_px"].to_numpy(), sel["y_px"].to_numpy(), shape)
-    imgs = [im[r0:r1, c0:c1] for im in preview_pages(paths["movie"], pages)]
-    overlay = [(x - c0, y - r0) for x, y in overlay]
-    where = "" if (r1 - r0, c1 - c0) == tuple(shape) else f" (rows {r0}-{r1 - 1}, columns {c0}-{c1 - 1})"
-    png = save_montage(imgs, [f"frame {k}" for k in pages], out / "preview.png",
-                       overlay=overlay, title=f"rendered frames{where}; red circles: ground truth")
-    print(f"rendered {nf} frames of {shape[0]} x {shape[1]} px ({px * 1e9:.1f} nm/px, {params['frame_interval']:g} s/frame)")
-    for k, v in paths.items():
-        print(f"  {k}: {v}")
-    print(f"  preview: {png}")
+        sel = truth[truth["frame"].isin(pages)]
+        r0, r1, c0, c1 = crop_box(sel["x_px"].to_numpy(), sel["y_px"].to_numpy(), shape)
+        imgs = [im[r0:r1, c0:c1] for im in preview_pages(paths["movie"], pages)]
+        overlay = [(x - c0, y - r0) for x, y in overlay]
+        where = "" if (r1 - r0, c1 - c0) == tuple(shape) else f" (rows {r0}-{r1 - 1}, columns {c0}-{c1 - 1})"
+        png = save_montage(imgs, [f"frame {k}" for k in pages], out / "preview.png",
+                           overlay=overlay, title=f"rendered frames{where}; red circles: ground truth")
+        print(f"rendered {nf} frames of {shape[0]} x {shape[1]} px ({px * 1e9:.1f} nm/px, {params['frame_interval']:g} s/frame)")
+        for k, v in paths.items():
+            print(f"  {k}: {v}")
+        print(f"  preview: {png}")
     return 0

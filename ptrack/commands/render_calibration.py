@@ -26,26 +26,28 @@ def add_arguments(p):
 
 
 def run(a) -> int:
+    from ptrack.errors import output_dir
     from sim.render.calibration import render_calibration
     from sim.render.options import brightfield_from_args, check_out_dir, optics_camera_from_args, preview_pages, save_montage, spread_indices
 
     out = check_out_dir(a.out)
-    optics, camera = optics_camera_from_args(a)
-    paths = render_calibration(out, a.z_range[0], a.z_range[1], a.z_step, shape=tuple(a.shape) if a.shape else None, optics=optics,
-                               camera=camera, focal_plane=a.focal_plane, radius=a.radius or 0.0,
-                               brightfield=brightfield_from_args(a), seed=a.seed, compression="zlib" if a.compress else None,
-                               scatter_phase=a.scatter_phase)
-    z = np.loadtxt(paths["z"], delimiter=",", skiprows=1)[:, 1].reshape(-1)
-    pages = spread_indices(len(z), 12, include=int(np.argmin(np.abs(z - a.focal_plane))))
-    imgs = preview_pages(paths["stack"], pages)
-    # large pages: show the middle, where the particle is, at a size the montage can show (the largest image fits)
-    H, W = imgs[0].shape
-    h = min(H, W, 256) // 2
-    imgs = [im[H // 2 - h:H // 2 + h, W // 2 - h:W // 2 + h] for im in imgs]
-    png = save_montage(imgs, [f"z = {z[k] * 1e6:+.2f} um" for k in pages], out / "calib_montage.png",
-                       title=f"calibration stack (z in um; central {2 * h} x {2 * h} px, smoothed)", smooth=True)
-    print(f"rendered {len(z)} calibration planes from {z[0] * 1e6:+.2f} to {z[-1] * 1e6:+.2f} um")
-    for k, v in paths.items():
-        print(f"  {k}: {v}")
-    print(f"  montage: {png}")
+    with output_dir(out, "--out", all_or_nothing=True):  # no half folder if a write fails
+        optics, camera = optics_camera_from_args(a)
+        paths = render_calibration(out, a.z_range[0], a.z_range[1], a.z_step, shape=tuple(a.shape) if a.shape else None, optics=optics,
+                                   camera=camera, focal_plane=a.focal_plane, radius=a.radius or 0.0,
+                                   brightfield=brightfield_from_args(a), seed=a.seed, compression="zlib" if a.compress else None,
+                                   scatter_phase=a.scatter_phase)
+        z = np.loadtxt(paths["z"], delimiter=",", skiprows=1)[:, 1].reshape(-1)
+        pages = spread_indices(len(z), 12, include=int(np.argmin(np.abs(z - a.focal_plane))))
+        imgs = preview_pages(paths["stack"], pages)
+        # large pages: show the middle, where the particle is, at a size the montage can show (the largest image fits)
+        H, W = imgs[0].shape
+        h = min(H, W, 256) // 2
+        imgs = [im[H // 2 - h:H // 2 + h, W // 2 - h:W // 2 + h] for im in imgs]
+        png = save_montage(imgs, [f"z = {z[k] * 1e6:+.2f} um" for k in pages], out / "calib_montage.png",
+                           title=f"calibration stack (z in um; central {2 * h} x {2 * h} px, smoothed)", smooth=True)
+        print(f"rendered {len(z)} calibration planes from {z[0] * 1e6:+.2f} to {z[-1] * 1e6:+.2f} um")
+        for k, v in paths.items():
+            print(f"  {k}: {v}")
+        print(f"  montage: {png}")
     return 0

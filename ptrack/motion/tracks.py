@@ -38,6 +38,21 @@ from ..constants import MOTION_BLUR_MAX  # noqa: E402  (the one range, shared wi
 MAX_COORDINATE = 1e150
 
 
+def check_coordinates(column: str, values) -> float:
+    """The largest finite |value| of a coordinate column (m); UserError beyond :data:`MAX_COORDINATE`.
+
+    The one rule for "is this a position in m" shared by the estimators and
+    the renderer (``sim.render``): NaN (a missing z) is allowed, infinity and
+    magnitudes whose squares overflow (and infinity) are not.
+    """
+    v = np.asarray(values, dtype=float)
+    big = float(np.nanmax(np.abs(v))) if (~np.isnan(v)).any() else 0.0
+    if not big <= MAX_COORDINATE:
+        raise UserError(f"column '{column}' holds {big:.3g}: not a position in m (squared displacements overflow)",
+                        "give positions in m (a microscope field is about 1e-4 m)")
+    return big
+
+
 def parse_axes(axes) -> tuple:
     """MSD axes from ``"x,y,xy"``, ``("x", "xy")`` ...: a tuple of names from :data:`AXES`.
 
@@ -190,10 +205,7 @@ def sort_tracks(df: pd.DataFrame, components) -> SortedTracks:
     vals = np.full((len(components), len(part)), np.nan)
     for j, c in enumerate(components):
         vals[j] = df[c].to_numpy(dtype=float)[order]
-        big = np.nanmax(np.abs(vals[j])) if np.isfinite(vals[j]).any() else 0.0
-        if not big <= MAX_COORDINATE:
-            raise UserError(f"column '{c}' holds {big:.3g}: not a position in m (squared displacements overflow)",
-                            "give positions in m (a microscope field is about 1e-4 m)")
+        check_coordinates(c, vals[j])
     return SortedTracks(part[starts], off, np.ascontiguousarray(frame), np.ascontiguousarray(vals), dt, order)
 
 

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ptrack.errors import UserError, atomic_output, check_positive
+from ptrack.errors import UserError, atomic_output, check_positive, output_dir
 from ptrack.table import to_jsonable
 
 from .camera import Camera, expose
@@ -192,7 +192,6 @@ def render_calibration(out_dir, z_min: float = -60e-6, z_max: float = 60e-6, z_s
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise UserError(f"output path {out_dir} exists and is not a directory", "give a directory for --out")
-    out_dir.mkdir(parents=True, exist_ok=True)
     info = {
         "pixel_size": pixel, "pixel_size_unit": "m", "z_step": float(z_step), "z_min": float(z[0]),
         "z_max": float(z[-1]), "z_unit": "m", "focal_plane": float(focal_plane), "x_px": position[0],
@@ -202,25 +201,27 @@ def render_calibration(out_dir, z_min: float = -60e-6, z_max: float = 60e-6, z_s
                              scatter_phase)
     if progress:
         gen = _with_bar(gen, len(z))
-    px_um = pixel * 1e6
-    stack = out_dir / "calib.tif"
-    with atomic_output(stack, None) as tmp:
-        tifffile.imwrite(
-            tmp, gen, shape=(len(z), H, W), dtype=np.uint16, imagej=True, compression=compression,
-            resolution=(1.0 / px_um, 1.0 / px_um),
-            metadata={"axes": "ZYX", "unit": "um", "spacing": float(z_step) * 1e6, "Info": json.dumps(info)},
-        )
-    zpath = out_dir / "calib_z.csv"
-    with atomic_output(zpath, "w") as fh:
-        fh.write("page,z\n")
-        for i, zi in enumerate(z):
-            fh.write(f"{i},{float(zi)!r}\n")
-    params = {**info, "n_planes": len(z), "shape": [H, W], "radius": radius, "brightfield": str(brightfield) if brightfield else False,
-              "scatter_phase": scatter_phase if brightfield == "coherent" else None,
-              "seed": seed if not isinstance(seed, np.random.Generator) else None,
-              "optics": optics.to_dict(), "camera": camera.to_dict(), "compression": compression}
-    ppath = out_dir / "calib_params.json"
-    with atomic_output(ppath, "w") as fh:
-        json.dump(to_jsonable(params), fh, indent=2, sort_keys=True)
-        fh.write("\n")
-    return {"stack": stack, "z": zpath, "params": ppath}
+    # a folder made here is removed again, with what was written into it, if any write fails (a full disk)
+    with output_dir(out_dir, "--out", all_or_nothing=True):
+        px_um = pixel * 1e6
+        stack = out_dir / "calib.tif"
+        with atomic_output(stack, None) as tmp:
+            tifffile.imwrite(
+                tmp, gen, shape=(len(z), H, W), dtype=np.uint16, imagej=True, compression=compression,
+                resolution=(1.0 / px_um, 1.0 / px_um),
+                metadata={"axes": "ZYX", "unit": "um", "spacing": float(z_step) * 1e6, "Info": json.dumps(info)},
+            )
+        zpath = out_dir / "calib_z.csv"
+        with atomic_output(zpath, "w") as fh:
+            fh.write("page,z\n")
+            for i, zi in enumerate(z):
+                fh.write(f"{i},{float(zi)!r}\n")
+        params = {**info, "n_planes": len(z), "shape": [H, W], "radius": radius, "brightfield": str(brightfield) if brightfield else False,
+                  "scatter_phase": scatter_phase if brightfield == "coherent" else None,
+                  "seed": seed if not isinstance(seed, np.random.Generator) else None,
+                  "optics": optics.to_dict(), "camera": camera.to_dict(), "compression": compression}
+        ppath = out_dir / "calib_params.json"
+        with atomic_output(ppath, "w") as fh:
+            json.dump(to_jsonable(params), fh, indent=2, sort_keys=True)
+            fh.write("\n")
+        return {"stack": stack, "z": zpath, "params": ppath}

@@ -35,7 +35,8 @@ import pandas as pd
 import scipy.fft as sfft
 from numba import njit
 
-from ptrack.errors import UserError, atomic_output, check_positive
+from ptrack.errors import UserError, atomic_output, check_positive, output_dir
+from ptrack.motion.tracks import check_coordinates
 from ptrack.table import make_table, metadata, to_jsonable, validate, write_table
 
 from .camera import Camera, Workspace, expose
@@ -209,6 +210,8 @@ class _Scene:
     def __init__(self, table, shape, optics, camera, focal_plane, motion_blur_substeps, radius,
                  brightfield=False, scatter_phase: float = 2.5):
         table = validate(table.copy())
+        for c in ("x", "y", "z"):  # the estimators' rule for a position in m (ptrack.motion.tracks)
+            check_coordinates(c, table[c])
         self.table = table
         try:
             H, W = (int(v) for v in shape)
@@ -565,8 +568,6 @@ def render_movie(table: pd.DataFrame, out_dir, shape=(256, 256), optics: Optics 
     -------
     dict with paths ``movie``, ``truth``, ``params``.
     """
-    import tifffile
-
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise UserError(f"output path {out_dir} exists and is not a directory", "give a directory for --out")
@@ -631,7 +632,16 @@ def render_movie(table: pd.DataFrame, out_dir, shape=(256, 256), optics: Optics 
     }
     if extra_params:
         params.update(extra_params)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    # a folder made here is removed again, with what was written into it, if any write fails (a full disk)
+    with output_dir(out_dir, "--out", all_or_nothing=True):
+        return _write_movie(out_dir, pages, nf, H, W, pixel, fi, info, compression, tbl, scene, signal, f0, radius,
+                            params)
+
+
+def _write_movie(out_dir, pages, nf, H, W, pixel, fi, info, compression, tbl, scene, signal, f0, radius, params):
+    """The files of :func:`render_movie`: movie.tif, truth.parquet, params.json (each atomic)."""
+    import tifffile
+
     movie = out_dir / "movie.tif"
     px_um = pixel * 1e6
     with atomic_output(movie, None) as tmp:
