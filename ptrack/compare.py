@@ -679,10 +679,10 @@ _COL = ("C0", "C3")
 
 def plot_comparison(comp: dict, out_dir) -> dict:
     """One PNG overlay per quantity of a comparison (``compare_tables(...)["comparisons"][i]``); returns name -> path."""
-    import matplotlib
+    from .plot import new_figure     # Figure objects, no pyplot: a notebook's backend and figures are left alone
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    def subplots(nrows=1, ncols=1, figsize=(4.5, 3.4), **kw):
+        return new_figure(figsize=figsize, dpi=100, nrows=nrows, ncols=ncols, **kw)
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -696,7 +696,6 @@ def plot_comparison(comp: dict, out_dir) -> dict:
         fig.tight_layout()
         with atomic_output(p, "wb") as fh:
             fig.savefig(fh, format="png", dpi=90)
-        plt.close(fig)
         paths[name] = p
 
     def verdict(key):
@@ -705,7 +704,7 @@ def plot_comparison(comp: dict, out_dir) -> dict:
 
     msd_keys = [k for k in cv if k.startswith("msd_")]
     if msd_keys:
-        fig, axs = plt.subplots(1, len(msd_keys), figsize=(4.2 * len(msd_keys), 3.6), squeeze=False)
+        fig, axs = subplots(1, len(msd_keys), figsize=(4.2 * len(msd_keys), 3.6), squeeze=False)
         for ax, k in zip(axs[0], msd_keys):
             c = cv[k]
             t = np.asarray(c["t_s"])
@@ -721,7 +720,7 @@ def plot_comparison(comp: dict, out_dir) -> dict:
         save(fig, "msd")
     dk = [k for k in q if q[k]["quantity"] == "D" and q[k]["a"]]
     if dk:
-        fig, ax = plt.subplots(figsize=(4.5, 3.4))
+        fig, ax = subplots(figsize=(4.5, 3.4))
         x = np.arange(len(dk))
         for j, (s, col, lab) in enumerate((("a", _COL[0], a), ("b", _COL[1], b))):
             ax.errorbar(x + (j - 0.5) * 0.2, [q[k][s]["D"] * 1e12 for k in dk],
@@ -733,7 +732,7 @@ def plot_comparison(comp: dict, out_dir) -> dict:
         save(fig, "D")
     dd = [k for k in cv if k.startswith("D_distribution_")]
     if dd:
-        fig, axs = plt.subplots(1, len(dd), figsize=(4.2 * len(dd), 3.4), squeeze=False)
+        fig, axs = subplots(1, len(dd), figsize=(4.2 * len(dd), 3.4), squeeze=False)
         for ax, k in zip(axs[0], dd):
             for s, col, lab in (("a", _COL[0], a), ("b", _COL[1], b)):
                 v = np.sort(np.asarray(cv[k][s])) * 1e12
@@ -746,7 +745,7 @@ def plot_comparison(comp: dict, out_dir) -> dict:
     vh = [k for k in cv if k.startswith("van_hove_")]
     if vh:
         comps_ = sorted({k.split("_")[2] for k in vh})
-        fig, axs = plt.subplots(1, len(comps_), figsize=(4.4 * len(comps_), 3.6), squeeze=False)
+        fig, axs = subplots(1, len(comps_), figsize=(4.4 * len(comps_), 3.6), squeeze=False)
         for ax, c in zip(axs[0], comps_):
             for j, k in enumerate(k for k in vh if k.split("_")[2] == c):
                 d = cv[k]
@@ -765,7 +764,7 @@ def plot_comparison(comp: dict, out_dir) -> dict:
         save(fig, "van_hove")
     a2 = [k for k in q if q[k]["quantity"] == "alpha2" and q[k]["a"]]
     if a2:
-        fig, ax = plt.subplots(figsize=(4.5, 3.4))
+        fig, ax = subplots(figsize=(4.5, 3.4))
         for c in sorted({q[k]["axis"] for k in a2}):
             ks = [k for k in a2 if q[k]["axis"] == c]
             t = [q[k]["lag_s"] for k in ks]
@@ -781,7 +780,7 @@ def plot_comparison(comp: dict, out_dir) -> dict:
         save(fig, "alpha2")
     dr = [k for k in q if q[k]["quantity"] == "drift" and q[k]["a"]]
     if dr:
-        fig, ax = plt.subplots(figsize=(4.5, 3.4))
+        fig, ax = subplots(figsize=(4.5, 3.4))
         x = np.arange(len(dr))
         for j, (s, col, lab) in enumerate((("a", _COL[0], a), ("b", _COL[1], b))):
             ax.errorbar(x + (j - 0.5) * 0.2, [q[k][s]["v"] * 1e6 for k in dr], [Z95 * q[k][s]["v_err"] * 1e6 for k in dr],
@@ -794,7 +793,7 @@ def plot_comparison(comp: dict, out_dir) -> dict:
         save(fig, "drift")
     vz = [k for k in cv if k.startswith("v_vs_height_")]
     if vz:
-        fig, ax = plt.subplots(figsize=(4.8, 3.6))
+        fig, ax = subplots(figsize=(4.8, 3.6))
         for j, k in enumerate(vz):
             d = cv[k]
             z = np.asarray(d["z_mid"]) * 1e6
@@ -810,7 +809,7 @@ def plot_comparison(comp: dict, out_dir) -> dict:
         save(fig, "v_vs_height")
     if "height" in cv:
         d = cv["height"]
-        fig, ax = plt.subplots(figsize=(4.5, 3.4))
+        fig, ax = subplots(figsize=(4.5, 3.4))
         z = np.asarray(d["z_centres"]) * 1e6
         ax.step(z, d["a"], where="mid", color=_COL[0], label=a)
         ax.step(z, d["b"], where="mid", color=_COL[1], label=b)
@@ -821,7 +820,7 @@ def plot_comparison(comp: dict, out_dir) -> dict:
         save(fig, "height")
     if "deposition" in cv:
         d = cv["deposition"]
-        fig, ax = plt.subplots(figsize=(4.5, 3.4))
+        fig, ax = subplots(figsize=(4.5, 3.4))
         ax.plot(d["t_s"], d["a"], color=_COL[0], label=a)
         ax.plot(d["t_s"], d["b"], color=_COL[1], label=b)
         ax.set_xlabel("t (s)")
