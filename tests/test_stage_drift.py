@@ -26,30 +26,32 @@ def fourier_shift(F, dx, dy, shape=SHAPE):
     return F * np.exp(-2j * np.pi * (kx * dx + ky * dy))
 
 
-def movie(n_frames, step_px, rng, n=50, jump_at=None):
+def movie(n_frames, step_px, rng, n=50, jump_at=None, jump=(6.3, -4.7), n_stuck=0, shape=SHAPE):
     """Frames of n spots moving by Brownian steps of ``step_px`` px rms per axis, the whole field shifted
-    by a known stage drift (a sub-pixel random walk plus a linear creep, and optionally a jump of (6.3, -4.7) px),
-    under an illumination fixed to the camera (gradient + vignetting), Poisson photons + read noise.
+    by a known stage drift (a sub-pixel random walk plus a linear creep, and optionally a ``jump`` (px) from frame
+    ``jump_at`` on), under an illumination fixed to the camera (gradient + vignetting), Poisson photons + read
+    noise. ``n_stuck`` more spots are stuck to the coverslip (they move with the stage only).
 
-    Returns (frames, drift (n_frames x 2, px), mean particle displacement (n_frames x 2, px))."""
-    H, W = SHAPE
+    Returns (frames, drift (n_frames x 2, px), mean displacement of the moving particles (n_frames x 2, px))."""
+    H, W = shape
     yy, xx = np.mgrid[:H, :W]
     illum = (1 + 0.3 * xx / W) * (1 - 0.3 * ((xx - W / 2) ** 2 + (yy - H / 2) ** 2) / (W * W / 2))
     xs, ys = rng.uniform(0, W, n), rng.uniform(0, H, n)
     d = np.cumsum(rng.normal(0, 0.25, (n_frames, 2)), axis=0) + np.linspace(0, 1, n_frames)[:, None] * [2.0, -1.5]
     if jump_at is not None:
-        d[jump_at:] += [6.3, -4.7]
+        d[jump_at:] += jump
     d -= d[0]
     px, py = xs.copy(), ys.copy()
+    stuck = spectrum(rng.uniform(0, W, n_stuck), rng.uniform(0, H, n_stuck), shape=shape) if n_stuck else 0.0
     frames, mean = [], []
     for k in range(n_frames):
         if k:
             px += rng.normal(0, step_px, n)
             py += rng.normal(0, step_px, n)
         mean.append([np.mean(px - xs), np.mean(py - ys)])
-        img = np.real(np.fft.ifft2(fourier_shift(spectrum(px, py), d[k, 0], d[k, 1])))
+        img = np.real(np.fft.ifft2(fourier_shift(spectrum(px, py, shape=shape) + stuck, d[k, 0], d[k, 1], shape=shape)))
         lam = np.clip((img + 30.0) * illum, 0, None)
-        frames.append((rng.poisson(lam) + 100 + 1.5 * rng.normal(size=SHAPE)).astype(np.float32))
+        frames.append((rng.poisson(lam) + 100 + 1.5 * rng.normal(size=shape)).astype(np.float32))
     return frames, d, np.array(mean)
 
 
