@@ -82,6 +82,7 @@ def test_extxyz_is_readable(tmp_path):
     assert f[0] == "P" and len(f) == 6 and f[-1] == "0"
 
 
+@pytest.mark.slow
 def test_hamaker_slope_within_5_percent():
     from sim.studies.hamaker import DEFAULTS, run_case
 
