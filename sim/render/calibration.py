@@ -70,6 +70,8 @@ def calibration_images(z, shape=(64, 64), optics: Optics | None = None, camera: 
     x_px, y_px = position if position is not None else (float((W - 1) // 2), float((H - 1) // 2))
     z = np.asarray(z, dtype=float)
     dz = z - float(focal_plane)
+    if optics.field_dependent:  # the bead's place on a curved / tilted focal surface (Optics.focal_shift)
+        dz = dz - optics.focal_shift(x_px * pixel, y_px * pixel, ((W - 1) / 2 * pixel, (H - 1) / 2 * pixel))
     n = patch_size(optics, pixel, float(np.max(np.abs(dz))) if dz.size else 0.0, radius)
     # a patch far larger than the frame is only needed to keep the PSF from wrapping onto itself;
     # the frame sees the central H x W part.

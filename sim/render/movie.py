@@ -249,6 +249,10 @@ class _Scene:
         self.y_px = table["y"].to_numpy() / self.pixel
         z = table["z"].to_numpy()
         self.defocus = np.where(np.isfinite(z), z - self.focal_plane, 0.0)
+        if self.optics.field_dependent:  # a curved / tilted focal surface (Optics.focal_shift) about the frame centre
+            zf = self.optics.focal_shift(table["x"].to_numpy(), table["y"].to_numpy(),
+                                         ((W - 1) / 2 * self.pixel, (H - 1) / 2 * self.pixel))
+            self.defocus = np.where(np.isfinite(z), self.defocus - zf, 0.0)
         if radius is not None:
             r = np.full(len(table), check_positive("radius", radius, allow_zero=True))
         elif "radius" in table.columns:
