@@ -218,8 +218,8 @@ def part3(quick, d, mm):
         table, t = grid_truth(n, (size, size), spacing, rng, margin=16, px=px)
         frames = list(render.render_frames(table, shape=(size, size), camera=cam, seed=size))
         if size == 256:
-            _ours_locate_link(frames[:2], cam)      # warm up, both (kernels loaded; see the cold start below)
-            _trackpy_locate_link(frames[:2], d, mm, 5.0)
+            _ours_locate_link(frames[:6], cam)      # warm up, both (kernels loaded; see the cold start below)
+            _trackpy_locate_link(frames[:6], d, mm, 5.0)
         feats, linked, tl, tk = _ours_locate_link(frames, cam)
         rm, _, rec, prec = score(feats[["x_px", "y_px"]].to_numpy(), t, n, feats["frame"].to_numpy())
         sr = linked.attrs["link"]["search_range_px"]

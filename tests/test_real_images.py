@@ -14,9 +14,12 @@ REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real" /
 
 @pytest.mark.skipif(not (REAL / "frames").is_dir(), reason="shared real data not present")
 def test_trackpy_movie_default_settings():
-    """Frame 1 of trackpy's movie, no option at all: polarity found (dark), >= 94 % of trackpy's 344
-    positions within 1 px (measured 96 %). Extras are reported, not bounded: trackpy's reference cuts its in-focus
-    mass mode in half (minmass=140), so most extras are particles trackpy itself finds below its cut."""
+    """Frame 1 of trackpy's movie, no option at all: polarity found (dark), >= 95 % of trackpy's 344
+    positions within 1 px (measured 96.5 %). Extras against the reference (72 %) are not bounded here: trackpy's
+    minmass=140 cuts its in-focus mass mode (its mass histogram has its valley at ~100, and ~100 in-focus
+    particles lie between 100 and 140), and its separation=10 px drops in-focus particles 5-10 px from a
+    brighter one; no knob-free rule reproduces those two cuts. Bounded instead: every extra must be a feature
+    trackpy's own locate finds with the cuts relaxed."""
     import cv2
 
     ref = pd.read_csv(REAL / "reference" / "trackpy_locate_frame0.csv")[["x", "y"]].to_numpy()
@@ -28,6 +31,14 @@ def test_trackpy_movie_default_settings():
     d, _ = cKDTree(xy).query(ref)
     assert (d < 1.0).mean() >= 0.95, (d < 1.0).mean()
     assert np.median(d) < 0.3
+    # the extras (72 % of 344) are not ghosts: trackpy's own locate reports them once its two cuts are
+    # relaxed (minmass 140 -> 60, below the valley of its mass histogram at ~100; separation 10 -> 5 px, so
+    # particles 5-10 px from a brighter one count). Measured: 10.7 % of ours are not such a feature
+    trackpy = pytest.importorskip("trackpy")
+    trackpy.quiet()
+    f = trackpy.locate(255 - im, diameter=9, minmass=60, separation=5)
+    d2, _ = cKDTree(f[["x", "y"]].to_numpy()).query(xy)
+    assert (d2 >= 1.0).mean() <= 0.15, (d2 >= 1.0).mean()
 
 
 def _erf_spot(x0, y0, s, shape):
