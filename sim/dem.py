@@ -42,11 +42,11 @@ import numpy as np
 from numba import njit
 
 from sim.forces.contact import (CONTACT_NONE, D_MAX_DAMP, D_MAX_OVERLAP, D_MAX_OVERLAP_I, D_MAX_W2, D_N_CONTACTS, D_SIZE,
-                                pair_forces, pair_forces_parallel, wall_forces)
+                                pair_forces, pair_forces_parallel, param_tuple, wall_contact, wall_forces)
 from sim.forces.body import magnetic_force
 from sim.forces.brownian import brownian_sigma
 from sim.forces.drag import drag_force_scalar
-from sim.forces.nearfield import LAW_WIDTH, law_row, law_table, wall_law_forces
+from sim.forces.nearfield import LAW_WIDTH, law_row, law_table, wall_law_force, wall_law_forces
 from sim.neighbors import _build, carry_history, needs_rebuild, wrap_positions
 
 # The cached kernels below call a parallel=True kernel; when they are loaded from
@@ -83,6 +83,44 @@ from sim.forces.brownian import counter_normal  # noqa: E402,F401  (re-exported:
 # --------------------------------------------------------------------------- force evaluation
 
 
+@njit(cache=True, inline="always")
+def _external_one(fx, fy, fz, vx, vy, vz, ri, qi, gi, drag_mode, ufx, ufy, ufz, rho_f, mu, bx, by, bz, magnetic, kT,
+                  seed, step, dt, i):
+    """Constant force ``f`` (N) + drag + magnetic Lorentz + Brownian on particle ``i`` of velocity
+    ``v``, radius, charge and Stokes gamma ``ri``, ``qi``, ``gi``, fluid velocity ``uf``, density and
+    viscosity ``rho_f``, ``mu``, magnetic field ``b``; see :func:`_external`.  Everything comes in as
+    scalars (array arguments of a function called per particle cost reference counting in the hot
+    loop: 5-10x this function's time)."""
+    if drag_mode == DRAG_STOKES:
+        fx += gi * (ufx - vx)
+        fy += gi * (ufy - vy)
+        fz += gi * (ufz - vz)
+    elif drag_mode == DRAG_SEED:
+        if rho_f == 0.0:
+            # fluid density 0: Re = 0, so phi(Re) = 1 and the seed's law is Stokes drag 6 pi mu R u
+            # (sim.forces.drag.drag_force_scalar: the same products, without its square root and division)
+            g = 6.0 * math.pi * mu * ri
+            fx += g * (ufx - vx)
+            fy += g * (ufy - vy)
+            fz += g * (ufz - vz)
+        else:
+            dx, dy, dz = drag_force_scalar(ufx - vx, ufy - vy, ufz - vz, ri, rho_f, mu)
+            fx += dx
+            fy += dy
+            fz += dz
+    if magnetic:
+        mx, my, mz = magnetic_force(qi, vx, vy, vz, bx, by, bz)
+        fx += mx
+        fy += my
+        fz += mz
+    if kT > 0.0:
+        s = brownian_sigma(gi, kT, dt)
+        fx += s * counter_normal(seed, step, 3 * i)
+        fy += s * counter_normal(seed, step, 3 * i + 1)
+        fz += s * counter_normal(seed, step, 3 * i + 2)
+    return fx, fy, fz
+
+
 @njit(cache=True)
 def _external(pos, vel, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt, force):
     """Constant force + drag + magnetic Lorentz + Brownian, added to ``force``.
@@ -95,30 +133,9 @@ def _external(pos, vel, radius, mass, charge, gamma, fconst, drag_mode, extp, se
     magnetic = extp[6] != 0.0 or extp[7] != 0.0 or extp[8] != 0.0
     kT = extp[5]
     for i in range(n):
-        fx = fconst[i, 0]
-        fy = fconst[i, 1]
-        fz = fconst[i, 2]
-        if drag_mode == DRAG_STOKES:
-            g = gamma[i]
-            fx += g * (extp[0] - vel[i, 0])
-            fy += g * (extp[1] - vel[i, 1])
-            fz += g * (extp[2] - vel[i, 2])
-        elif drag_mode == DRAG_SEED:
-            dx, dy, dz = drag_force_scalar(extp[0] - vel[i, 0], extp[1] - vel[i, 1], extp[2] - vel[i, 2],
-                                           radius[i], extp[3], extp[4])
-            fx += dx
-            fy += dy
-            fz += dz
-        if magnetic:
-            mx, my, mz = magnetic_force(charge[i], vel[i, 0], vel[i, 1], vel[i, 2], extp[6], extp[7], extp[8])
-            fx += mx
-            fy += my
-            fz += mz
-        if kT > 0.0:
-            s = brownian_sigma(gamma[i], kT, dt)
-            fx += s * counter_normal(seed, step, 3 * i)
-            fy += s * counter_normal(seed, step, 3 * i + 1)
-            fz += s * counter_normal(seed, step, 3 * i + 2)
+        fx, fy, fz = _external_one(fconst[i, 0], fconst[i, 1], fconst[i, 2], vel[i, 0], vel[i, 1], vel[i, 2],
+                                   radius[i], charge[i], gamma[i], drag_mode, extp[0], extp[1], extp[2], extp[3], extp[4],
+                                   extp[6], extp[7], extp[8], magnetic, kT, seed, step, dt, i)
         force[i, 0] += fx
         force[i, 1] += fy
         force[i, 2] += fz
@@ -184,6 +201,153 @@ def _half_kick(vel, omega, force, torque, mass, inertia, hdt, rotation):
 
 
 @njit(cache=True)
+def _kick_drift(pos, vel, omega, force, torque, mass, inertia, ref_pos, hdt, dt, rotation, skin):
+    """First half of a velocity-Verlet step in one pass over the particles: half kick of ``vel`` (and
+    ``omega``), drift of ``pos``; returns True when some particle moved more than skin/2 since the list
+    was built (:func:`sim.neighbors.needs_rebuild`, the same test).  The same arithmetic per particle
+    as :func:`_half_kick`, the drift and ``needs_rebuild`` one after the other."""
+    lim = 0.25 * skin * skin
+    moved = False
+    for i in range(pos.shape[0]):
+        im = hdt / mass[i]
+        vx = vel[i, 0] + im * force[i, 0]
+        vy = vel[i, 1] + im * force[i, 1]
+        vz = vel[i, 2] + im * force[i, 2]
+        vel[i, 0] = vx
+        vel[i, 1] = vy
+        vel[i, 2] = vz
+        if rotation:
+            ii = hdt / inertia[i]
+            omega[i, 0] += ii * torque[i, 0]
+            omega[i, 1] += ii * torque[i, 1]
+            omega[i, 2] += ii * torque[i, 2]
+        x = pos[i, 0] + dt * vx
+        y = pos[i, 1] + dt * vy
+        z = pos[i, 2] + dt * vz
+        pos[i, 0] = x
+        pos[i, 1] = y
+        pos[i, 2] = z
+        dx = x - ref_pos[i, 0]
+        dy = y - ref_pos[i, 1]
+        dz = z - ref_pos[i, 2]
+        if dx * dx + dy * dy + dz * dz > lim:
+            moved = True
+    return moved
+
+
+@njit(cache=True)
+def _begin_forces(vel, radius, charge, gamma, fconst, drag_mode, extp, seed, step, dt, rotation, force,
+                  torque, diag):
+    """Start a force pass: ``force`` = the external forces (:func:`_external` on zeroed arrays, one
+    pass), ``torque`` = 0, ``diag`` = 0."""
+    magnetic = extp[6] != 0.0 or extp[7] != 0.0 or extp[8] != 0.0
+    kT = extp[5]
+    for k in range(D_SIZE):
+        diag[k] = 0.0
+    for i in range(vel.shape[0]):
+        fx, fy, fz = _external_one(fconst[i, 0], fconst[i, 1], fconst[i, 2], vel[i, 0], vel[i, 1], vel[i, 2],
+                                   radius[i], charge[i], gamma[i], drag_mode, extp[0], extp[1], extp[2], extp[3], extp[4],
+                                   extp[6], extp[7], extp[8], magnetic, kT, seed, step, dt, i)
+        force[i, 0] = 0.0 + fx
+        force[i, 1] = 0.0 + fy
+        force[i, 2] = 0.0 + fz
+        if rotation:
+            torque[i, 0] = 0.0
+            torque[i, 1] = 0.0
+            torque[i, 2] = 0.0
+
+
+@njit(cache=True)
+def _walls_kick_check(pos, vel, omega, force, torque, radius, mass, inertia, charge, walls, whist, model, cpw,
+                      wall_laws, rotation, hdt, dt, diag, guards):
+    """End of a velocity-Verlet step in one pass: wall contacts and wall laws (as :func:`_forces` adds
+    them, after the pair forces), the second half kick, and the checks of :func:`_check`.
+
+    Returns ``(status, particle)`` of the first particle failing a check (``(OK, -1)`` if none).
+    """
+    nw = walls.shape[0]
+    contact = nw > 0 and model != CONTACT_NONE
+    laws = nw > 0 and wall_laws.shape[0] > 0
+    vmax2 = guards[G_V_MAX] * guards[G_V_MAX]
+    bottom = guards[G_HAS_BOTTOM] != 0.0
+    status = OK
+    bad = -1
+    ncontact = 0
+    c = param_tuple(cpw)
+    for i in range(pos.shape[0]):
+        if contact:
+            # sim.forces.contact.wall_forces for this particle (the same arithmetic)
+            ri = radius[i]
+            for w in range(nw):
+                nx = walls[w, 3]
+                ny = walls[w, 4]
+                nz = walls[w, 5]
+                d = (pos[i, 0] - walls[w, 0]) * nx + (pos[i, 1] - walls[w, 1]) * ny + (pos[i, 2] - walls[w, 2]) * nz
+                k = i * nw + w
+                if d >= ri:
+                    if whist[k, 0] != 0.0 or whist[k, 1] != 0.0 or whist[k, 2] != 0.0:
+                        whist[k, 0] = 0.0
+                        whist[k, 1] = 0.0
+                        whist[k, 2] = 0.0
+                    continue
+                ncontact += 1
+                ov = (ri - d) / ri
+                if ov > diag[0]:
+                    diag[0] = ov
+                    diag[1] = i
+                fx, fy, fz, tx, ty, tz, sx, sy, sz, w2, dr = wall_contact(
+                    model, c, d, ri, mass[i], vel[i, 0], vel[i, 1], vel[i, 2], omega[i, 0], omega[i, 1],
+                    omega[i, 2], nx, ny, nz, whist[k, 0], whist[k, 1], whist[k, 2], rotation, dt)
+                whist[k, 0] = sx
+                whist[k, 1] = sy
+                whist[k, 2] = sz
+                if w2 > diag[2]:
+                    diag[2] = w2
+                if dr > diag[3]:
+                    diag[3] = dr
+                force[i, 0] += fx
+                force[i, 1] += fy
+                force[i, 2] += fz
+                if rotation:
+                    torque[i, 0] -= tx
+                    torque[i, 1] -= ty
+                    torque[i, 2] -= tz
+        if laws:
+            for w in range(nw):
+                d = ((pos[i, 0] - walls[w, 0]) * walls[w, 3] + (pos[i, 1] - walls[w, 1]) * walls[w, 4]
+                     + (pos[i, 2] - walls[w, 2]) * walls[w, 5])
+                fm = wall_law_force(wall_laws, d, radius[i], charge[i])
+                force[i, 0] += fm * walls[w, 3]
+                force[i, 1] += fm * walls[w, 4]
+                force[i, 2] += fm * walls[w, 5]
+        im = hdt / mass[i]
+        vx = vel[i, 0] + im * force[i, 0]
+        vy = vel[i, 1] + im * force[i, 1]
+        vz = vel[i, 2] + im * force[i, 2]
+        vel[i, 0] = vx
+        vel[i, 1] = vy
+        vel[i, 2] = vz
+        if rotation:
+            ii = hdt / inertia[i]
+            omega[i, 0] += ii * torque[i, 0]
+            omega[i, 1] += ii * torque[i, 1]
+            omega[i, 2] += ii * torque[i, 2]
+        if status == OK:
+            z = pos[i, 2]
+            v2 = vx * vx + vy * vy + vz * vz
+            if not (math.isfinite(pos[i, 0]) and math.isfinite(pos[i, 1]) and math.isfinite(z)
+                    and math.isfinite(v2)):
+                status, bad = BLOWUP_NAN, i
+            elif bottom and z < 0.0:
+                status, bad = BLOWUP_WALL, i
+            elif v2 > vmax2:
+                status, bad = BLOWUP_SPEED, i
+    if contact:
+        diag[4] += ncontact
+    return status, bad
+
+
+@njit(cache=True)
 def rebuild_neighbors(pos, image, radius, cutoff, skin, lo, length, periodic, start, nbj, hist, ref_pos):
     """Wrap positions into the box and rebuild the neighbour list from them.
 
@@ -237,6 +401,7 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
         extp[5] = 0.0
         drag_mode = DRAG_NONE
     hdt = 0.5 * dt
+    pairs = model != CONTACT_NONE or pair_laws.shape[0] > 0
     # per-thread force buffers of the threaded pair kernel (allocated once per chunk)
     if nthreads > 1:
         fbuf = np.zeros((nthreads, n, 3))
@@ -260,20 +425,27 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
         t0 = np.empty((0, 3))
     for s in range(nsteps):
         step = step0 + s + 1
+        st = OK
+        p = -1
         if integrator == VERLET:
-            _half_kick(vel, omega, force, torque, mass, inertia, hdt, rotation)
-            for i in range(n):
-                pos[i, 0] += dt * vel[i, 0]
-                pos[i, 1] += dt * vel[i, 1]
-                pos[i, 2] += dt * vel[i, 2]
-            if needs_rebuild(pos, ref_pos, skin):
+            # three passes over the particles per step (kick + drift + skin test; external forces; walls +
+            # kick + checks) around the pair pass: the arithmetic of _half_kick, _forces and _check in the
+            # same order per particle, so the results are those of the separate loops bit for bit
+            if _kick_drift(pos, vel, omega, force, torque, mass, inertia, ref_pos, hdt, dt, rotation, skin):
                 start, nbj, shift, hist = rebuild_neighbors(pos, image, radius, cutoff, skin, lo, length, periodic,
                                                             start, nbj, hist, ref_pos)
                 nbuild += 1
-            _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt,
-                    model, cp, cpw, pair_laws, wall_laws, rotation, walls, whist, start, nbj, shift, hist,
-                    force, torque, diag, fbuf, tbuf, dbuf)
-            _half_kick(vel, omega, force, torque, mass, inertia, hdt, rotation)
+            _begin_forces(vel, radius, charge, gamma, fconst, drag_mode, extp, seed, step, dt, rotation, force,
+                          torque, diag)
+            if pairs:
+                if fbuf.shape[0] > 1:
+                    pair_forces_parallel(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist, force,
+                                         torque, model, cp, pair_laws, rotation, dt, diag, fbuf, tbuf, dbuf)
+                else:
+                    pair_forces(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist, force, torque,
+                                model, cp, pair_laws, rotation, dt, diag)
+            st, p = _walls_kick_check(pos, vel, omega, force, torque, radius, mass, inertia, charge, walls, whist,
+                                      model, cpw, wall_laws, rotation, hdt, dt, diag, guards)
             t_done += dt
         elif integrator == OVERDAMPED:
             dts = dt
@@ -375,7 +547,8 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
             chunk_peaks[P_DAMP] = diag[D_MAX_DAMP]
         if diag[D_MAX_OVERLAP] > guards[G_MAX_OVERLAP]:
             return BLOWUP_OVERLAP, s + 1, int(diag[D_MAX_OVERLAP_I]), start, nbj, shift, hist, ref_pos, nbuild, t_done
-        st, p = _check(pos, vel, radius, guards)
+        if integrator != VERLET:
+            st, p = _check(pos, vel, radius, guards)
         if st != OK:
             return st, s + 1, p, start, nbj, shift, hist, ref_pos, nbuild, t_done
         if guards[G_T_STOP] > 0.0 and t_done >= guards[G_T_STOP]:
@@ -831,6 +1004,8 @@ class DEMResult:
     n_frames, dt_final, dt_min, dt_max, max_overlap_ratio, n_builds,
     rollbacks, resumed_from_step).
     """
+
+    already_complete = False  # as sim.run.RunResult: True only for a --resume of a finished run
 
     def __init__(self, trajectories, scene_json, n_frames, wall_time_s, summary, system):
         self.trajectories = trajectories

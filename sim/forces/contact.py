@@ -75,13 +75,26 @@ def restitution_beta(e):
 
 
 @njit(cache=True, inline="always")
+def param_tuple(cp):
+    """The contact parameters as a 12-tuple (zero-padded): the form :func:`_law` takes."""
+    m = cp.shape[0]
+    return (cp[0] if m > 0 else 0.0, cp[1] if m > 1 else 0.0, cp[2] if m > 2 else 0.0, cp[3] if m > 3 else 0.0,
+            cp[4] if m > 4 else 0.0, cp[5] if m > 5 else 0.0, cp[6] if m > 6 else 0.0, cp[7] if m > 7 else 0.0,
+            cp[8] if m > 8 else 0.0, cp[9] if m > 9 else 0.0, cp[10] if m > 10 else 0.0,
+            cp[11] if m > 11 else 0.0)
+
+
+@njit(cache=True, inline="always")
 def _law(model, cp, delta, nx, ny, nz, d, ri, rj, wall, meff,
-         vrx, vry, vrz, wsx, wsy, wsz, hist, k, dt, diag):
+         vrx, vry, vrz, wsx, wsy, wsz, sx, sy, sz, dt):
     """Contact force on i (along n from j to i) and the tangential part.
 
-    ``ws = R_i w_i + R_j w_j`` (for a wall: ``R_i w_i``).  ``hist[k]`` is the
-    tangential spring of this contact.  Returns
-    ``(fx, fy, fz, tfx, tfy, tfz)``: total force on i and its tangential part.
+    ``cp`` is the parameter tuple of :func:`param_tuple`; ``ws = R_i w_i + R_j w_j``
+    (for a wall: ``R_i w_i``); ``s`` the tangential spring of this contact (m).
+    Returns ``(fx, fy, fz, tfx, tfy, tfz, sx, sy, sz, w2, dr)``: total force on i,
+    its tangential part, the updated spring, and k/m_eff (1/s^2) and eta/m_eff
+    (1/s) for the time-step diagnostics.  Scalars in and out: array arguments
+    of a function called per contact cost reference counting in the hot loop.
     """
     vn = vrx * nx + vry * ny + vrz * nz
     # tangential relative velocity at the contact point
@@ -147,10 +160,6 @@ def _law(model, cp, delta, nx, ny, nz, d, ri, rj, wall, meff,
         kk = cp[0] * (p * fast_pow(eps, p - 1.0) * deps * area + ep * math.pi * dadd)
         w2 = kk / meff
         dr = cp[2] * area / meff
-    if w2 > diag[2]:
-        diag[2] = w2
-    if dr > diag[3]:
-        diag[3] = dr
     fx = fn * nx
     fy = fn * ny
     fz = fn * nz
@@ -160,9 +169,6 @@ def _law(model, cp, delta, nx, ny, nz, d, ri, rj, wall, meff,
     if kt_eff > 0.0:
         # project the stored spring onto the current tangent plane (as LAMMPS
         # gran/hooke/history does; the length change is second order in the rotation)
-        sx = hist[k, 0]
-        sy = hist[k, 1]
-        sz = hist[k, 2]
         sn = sx * nx + sy * ny + sz * nz
         sx -= sn * nx
         sy -= sn * ny
@@ -196,13 +202,10 @@ def _law(model, cp, delta, nx, ny, nz, d, ri, rj, wall, meff,
                 sx = -tfx / kt_eff
                 sy = -tfy / kt_eff
                 sz = -tfz / kt_eff
-        hist[k, 0] = sx
-        hist[k, 1] = sy
-        hist[k, 2] = sz
         fx += tfx
         fy += tfy
         fz += tfz
-    return fx, fy, fz, tfx, tfy, tfz
+    return fx, fy, fz, tfx, tfy, tfz, sx, sy, sz, w2, dr
 
 
 @njit(cache=True)
@@ -214,6 +217,7 @@ def _pair_rows(i0, i1, pos, vel, omega, radius, mass, charge, start, nbj, shift,
     for every listed pair; L = 0 for contact only.
     """
     far_laws = laws.shape[0] > 0
+    c = param_tuple(cp)
     ncontact = 0
     for i in range(i0, i1):
         xi = pos[i, 0]
@@ -274,8 +278,16 @@ def _pair_rows(i0, i1, pos, vel, omega, radius, mass, charge, start, nbj, shift,
                     wsx = 0.0
                     wsy = 0.0
                     wsz = 0.0
-                fx, fy, fz, tfx, tfy, tfz = _law(model, cp, delta, nx, ny, nz, r, ri, rj, False, meff,
-                                                 vrx, vry, vrz, wsx, wsy, wsz, hist, k, dt, diag)
+                fx, fy, fz, tfx, tfy, tfz, sx, sy, sz, w2, dr = _law(model, c, delta, nx, ny, nz, r, ri, rj, False,
+                                                                     meff, vrx, vry, vrz, wsx, wsy, wsz, hist[k, 0],
+                                                                     hist[k, 1], hist[k, 2], dt)
+                hist[k, 0] = sx
+                hist[k, 1] = sy
+                hist[k, 2] = sz
+                if w2 > diag[2]:
+                    diag[2] = w2
+                if dr > diag[3]:
+                    diag[3] = dr
                 if rotation:
                     # torque = (-R n) x F_t on i and (R_j n) x (-F_t) on j
                     cx = ny * tfz - nz * tfy
@@ -371,15 +383,45 @@ def pair_forces_parallel(pos, vel, omega, radius, mass, charge, start, nbj, shif
         diag[4] += dbuf[t, 4]
 
 
+@njit(cache=True, inline="always")
+def wall_contact(model, c, d, ri, mi, vx, vy, vz, ox, oy, oz, nx, ny, nz, sx, sy, sz, rotation, dt):
+    """Contact of a sphere (radius ``ri``, mass ``mi``, velocity ``v``, angular velocity ``o``,
+    tangential spring ``s``) whose centre is ``d`` from a wall plane of inward normal ``n``; call it
+    only when ``d < ri``.  ``c``: :func:`param_tuple`.  Returns ``(fx, fy, fz, tx, ty, tz, sx, sy, sz,
+    w2, dr)``: force, torque, updated spring and the time-step diagnostics of :func:`_law`."""
+    delta = ri - d
+    dd = d if d > 0.0 else 0.0
+    if rotation:
+        wsx = ri * ox
+        wsy = ri * oy
+        wsz = ri * oz
+    else:
+        wsx = 0.0
+        wsy = 0.0
+        wsz = 0.0
+    fx, fy, fz, tfx, tfy, tfz, sx, sy, sz, w2, dr = _law(model, c, delta, nx, ny, nz, dd, ri, 0.0, True, mi,
+                                                         vx, vy, vz, wsx, wsy, wsz, sx, sy, sz, dt)
+    tx = 0.0
+    ty = 0.0
+    tz = 0.0
+    if rotation:
+        tx = ri * (ny * tfz - nz * tfy)
+        ty = ri * (nz * tfx - nx * tfz)
+        tz = ri * (nx * tfy - ny * tfx)
+    return fx, fy, fz, tx, ty, tz, sx, sy, sz, w2, dr
+
+
 @njit(cache=True)
 def wall_forces(pos, vel, omega, radius, mass, walls, whist, force, torque, model, cp,
                 rotation, dt, diag):
     """Forces from plane walls.  ``walls`` (W, 6): a point on the plane and its
     unit normal pointing into the domain.  ``whist`` (N*W, 3) tangential springs
     (row ``i*W + w``).  A particle touches wall w when its centre is closer than
-    its radius to the plane (or behind it)."""
+    its radius to the plane (or behind it).  (The velocity-Verlet stepper of
+    :mod:`sim.dem` does the same per particle, fused with its kick.)"""
     n = pos.shape[0]
     nw = walls.shape[0]
+    c = param_tuple(cp)
     ncontact = 0
     for w in range(nw):
         px = walls[w, 0]
@@ -399,30 +441,27 @@ def wall_forces(pos, vel, omega, radius, mass, walls, whist, force, torque, mode
                     whist[k, 2] = 0.0
                 continue
             ncontact += 1
-            delta = ri - d
-            ov = delta / ri
+            ov = (ri - d) / ri
             if ov > diag[0]:
                 diag[0] = ov
                 diag[1] = i
-            dd = d if d > 0.0 else 0.0
-            if rotation:
-                wsx = ri * omega[i, 0]
-                wsy = ri * omega[i, 1]
-                wsz = ri * omega[i, 2]
-            else:
-                wsx = 0.0
-                wsy = 0.0
-                wsz = 0.0
-            fx, fy, fz, tfx, tfy, tfz = _law(model, cp, delta, nx, ny, nz, dd, ri, 0.0, True, mass[i],
-                                             vel[i, 0], vel[i, 1], vel[i, 2], wsx, wsy, wsz,
-                                             whist, k, dt, diag)
+            fx, fy, fz, tx, ty, tz, sx, sy, sz, w2, dr = wall_contact(
+                model, c, d, ri, mass[i], vel[i, 0], vel[i, 1], vel[i, 2], omega[i, 0], omega[i, 1], omega[i, 2],
+                nx, ny, nz, whist[k, 0], whist[k, 1], whist[k, 2], rotation, dt)
+            whist[k, 0] = sx
+            whist[k, 1] = sy
+            whist[k, 2] = sz
+            if w2 > diag[2]:
+                diag[2] = w2
+            if dr > diag[3]:
+                diag[3] = dr
             force[i, 0] += fx
             force[i, 1] += fy
             force[i, 2] += fz
             if rotation:
-                torque[i, 0] -= ri * (ny * tfz - nz * tfy)
-                torque[i, 1] -= ri * (nz * tfx - nx * tfz)
-                torque[i, 2] -= ri * (nx * tfy - ny * tfx)
+                torque[i, 0] -= tx
+                torque[i, 1] -= ty
+                torque[i, 2] -= tz
     diag[4] += ncontact
 
 
