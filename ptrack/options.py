@@ -172,6 +172,8 @@ OPTIONS: dict[str, Range] = {
     "--debye-length": positive("m"),
     "--permittivity": Range("a relative permittivity >= 1", lo=1.0),
     "--calibrate": whole(0, "calibration rounds", hi=5),
+    # simulate
+    "--max-hours": positive("hours of estimated run time on one core"),
     # studies
     "--replicates": whole(1, "replicates per case"),
     "--particles": whole(1, "particles"),
@@ -180,6 +182,7 @@ OPTIONS: dict[str, Range] = {
     "--cn-factor": Range("a factor above 1 (e.g. 1.1)", lo=1.0, lo_open=True),
     "--pe": positive("Peclet number"),
     "--a-over-lambda": positive("radius over Debye length"),
+    "--checkpoint-minutes": positive("minutes of wall time between checkpoints"),
 }
 
 #: command ("track", "study deposition", ...) -> option -> range, where a name differs in meaning

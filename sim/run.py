@@ -28,12 +28,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ptrack.errors import UserError, atomic_output
+from ptrack.errors import UserError, atomic_output, missing_dirs, remove_empty_dirs
 from sim.forces.drag import max_reynolds
 from sim.integrate import (IntegratorChoice, _reynolds_at_balance, choose_integrator, ou_exact_kernel,
                            overdamped_kernel, trapezoidal_kernel, wall_tables)
 from sim.driver import (SEGMENT_DIR, InterruptGuard, RunFailure, SegmentedTable, WallClock, WallClockChunker,
-                        discard_if_empty, prepare_out_dir, run_frames)
+                        prepare_out_dir, run_frames)
 from sim.scene import Scene
 from sim.state import State, build_state, constant_force
 
@@ -49,6 +49,7 @@ class RunResult:
     n_frames: int
     wall_time_s: float
     state: State | None = None
+    already_complete: bool = False  # a --resume of a finished run: nothing was computed
 
 
 def numba_seed(seed) -> int:
@@ -167,27 +168,33 @@ def _frame_table(frames: np.ndarray, t: np.ndarray, pos: np.ndarray, vel: np.nda
     })
 
 
-# a run estimated above this many particle-steps is refused (about a day at 1e7 particle-steps/s)
-MAX_PARTICLE_STEPS = 1.0e12
-PARTICLE_STEPS_PER_S = 1.0e7  # order of magnitude of the free-particle kernels on one core, for the message
+#: estimated run time (h, one core) above which a run is refused unless the caller allows more (``max_hours``)
+MAX_RUN_HOURS = 4.0
+#: particle-steps per second of each free-particle kernel on one core (measured, N = 2000, a loaded 2-core
+#: machine; the trapezoidal rule iterates a fixed point at every step), for the estimate of the run time
+PARTICLE_STEPS_PER_S = {"ou_exact": 2.0e6, "overdamped": 4.0e6, "trapezoidal": 1.5e6}
 
 
-def check_cost(n: int, n_frames: int, choice: IntegratorChoice) -> float:
-    """Refuse (UserError) a run whose estimated cost is absurd; returns the particle-steps.
+def check_cost(n: int, n_frames: int, choice: IntegratorChoice, max_hours: float = MAX_RUN_HOURS) -> float:
+    """Refuse (UserError) a run whose estimated wall time exceeds ``max_hours``; returns the particle-steps.
 
-    The cost is N x frames x steps per frame, known before any step; the
-    message says why the steps are so many (dt and what chose it) and, when
-    the Reynolds number is beyond the tabulated drag law, that the physics is
-    outside the model anyway.
+    The cost is N x frames x steps per frame, with the dt and steps per
+    output interval the run will use (``choice``, from
+    :func:`sim.integrate.choose_integrator`: the kernels take exactly these),
+    known before any step; the time is that cost at the measured rate of
+    the chosen kernel (:data:`PARTICLE_STEPS_PER_S`). The message says why the
+    steps are so many (dt and what chose it) and, when the Reynolds number is
+    beyond Stokes flow or the tabulated drag law, that the physics is outside
+    the model anyway.
     """
     from sim.electrokinetics import _CD_RE4
 
     cost = float(n) * n_frames * choice.steps_per_output
-    if cost <= MAX_PARTICLE_STEPS:
+    hours = cost / PARTICLE_STEPS_PER_S.get(choice.kind, min(PARTICLE_STEPS_PER_S.values())) / 3600
+    if hours <= max_hours:
         return cost
-    hours = cost / PARTICLE_STEPS_PER_S / 3600
     why = (f"the run needs {cost:.2g} particle-steps ({choice.steps_per_output:.3g} steps of dt = {choice.dt:.3g} s "
-           f"per output frame, about {hours:.3g} h)")
+           f"per output frame, {choice.kind}), about {hours:.3g} h on one core, over the {max_hours:g} h budget")
     if choice.re_estimate > _CD_RE4:
         why += (f"; the Reynolds number reaches {choice.re_estimate:.3g}, far outside the drag law "
                 f"(tabulated to Re = {_CD_RE4:.3g}), so the result would not mean anything anyway")
@@ -195,7 +202,48 @@ def check_cost(n: int, n_frames: int, choice: IntegratorChoice) -> float:
         why += (f"; the Reynolds number reaches {choice.re_estimate:.3g}, far outside Stokes flow (Re <= 1) where "
                 "the colloid physics of a scene (Brownian motion, Henry's charge) holds: the drive is unphysical "
                 "for these particles")
-    raise UserError(why, "lower the field or the charge, or shorten time.final / output_interval")
+    raise UserError(why, "lower the field or the charge, shorten time.final / output_interval, or allow more time "
+                         "(simulate --max-hours)")
+
+
+def run_complete(out_dir, fingerprint: str) -> int | None:
+    """The number of frames of the finished run of ``fingerprint`` in ``out_dir``, or None.
+
+    Finished: ``trajectories.parquet`` is there, written by this run (scene
+    and seed: the table's ``run`` key), not marked incomplete, and no table
+    segments wait for a resume.
+    """
+    import pyarrow.parquet as pq
+
+    from ptrack.table import META_KEY
+
+    out_dir = Path(out_dir)
+    path = out_dir / "trajectories.parquet"
+    if not path.is_file() or (out_dir / SEGMENT_DIR).exists():
+        return None
+    try:
+        pf = pq.ParquetFile(str(path))
+        # the footer's key-value metadata first (where "incomplete" is added at close), as read_table does
+        raw = (pf.metadata.metadata or {}).get(META_KEY.encode()) or (pf.schema_arrow.metadata or {}).get(
+            META_KEY.encode())
+        meta = json.loads(raw or b"{}")
+    except Exception:  # unreadable: not a finished run
+        return None
+    if meta.get("run") != fingerprint or meta.get("incomplete"):
+        return None
+    import pyarrow.compute as pc
+
+    frames = pf.read(columns=["frame"])["frame"]
+    return int(pc.count_distinct(frames).as_py())
+
+
+def _tidy_failed(out_dir: Path, made: list) -> None:
+    """After a failed or interrupted run: remove an empty segment folder (no committed frames to resume
+    from) and the folders this run created, if nothing is left in them."""
+    seg = out_dir / SEGMENT_DIR
+    if seg.is_dir() and not any(seg.iterdir()):
+        seg.rmdir()
+    remove_empty_dirs(made)
 
 
 def _write_state(path: Path, state: State, t: float) -> None:
@@ -205,7 +253,8 @@ def _write_state(path: Path, state: State, t: float) -> None:
 
 
 def run_scene(scene: Scene, out_dir, seed=None, progress: bool = True, resume: bool = False,
-              max_rows_per_chunk: int = 1_000_000, checkpoint_seconds: float = 30.0) -> RunResult:
+              max_rows_per_chunk: int = 1_000_000, checkpoint_seconds: float = 30.0,
+              max_hours: float = MAX_RUN_HOURS) -> RunResult:
     """Run a scene and stream its trajectories to ``out_dir/trajectories.parquet``.
 
     Parameters
@@ -222,13 +271,18 @@ def run_scene(scene: Scene, out_dir, seed=None, progress: bool = True, resume: b
         Continue from ``out_dir/checkpoint.npz``: the table equals the
         uninterrupted run's, frame for frame. Refused at once (nothing
         written) without a checkpoint, or when the checkpoint, its table
-        segments and the scene (with its seed) do not belong together.
+        segments and the scene (with its seed) do not belong together. A run
+        that already finished (:func:`run_complete`) is left as it is: the
+        result has ``already_complete`` set and nothing is computed.
     max_rows_per_chunk : int
         Rows buffered before a chunk is appended to the Parquet file.
     checkpoint_seconds : float
         Free-particle runs: a checkpoint (with its committed table segment) at
         the first chunk of frames after this much wall time (DEM runs: every
         ``contact.checkpoint_every`` frames).
+    max_hours : float
+        Free particles: refuse a run estimated to take longer (h on one
+        core, :func:`check_cost`).
 
     Returns
     -------
@@ -246,19 +300,42 @@ def run_scene(scene: Scene, out_dir, seed=None, progress: bool = True, resume: b
 
     A folder that holds an earlier run gets that run's files moved into
     ``previous/`` (one generation) first (:func:`sim.driver.prepare_out_dir`).
+    A run that fails or is interrupted before it has committed any frames
+    leaves no empty segment folder, and no empty folder it created.
     """
+    from sim.checkpoint import scene_fingerprint
+
+    t0 = time.perf_counter()
     if seed is not None:
         scene = dataclasses.replace(scene, seed=int(seed))
     out_dir = Path(out_dir)
-    if scene.interactions is not None and getattr(scene.interactions, "any_pair_force", False):
-        from sim.dem import run_dem
-        return run_dem(scene, out_dir, resume=resume, progress=progress)
-    from sim.checkpoint import load_checkpoint, save_checkpoint, scene_fingerprint
+    fp = scene_fingerprint(scene.to_dict())  # covers the seed; the DEM engine computes the same key
+    if resume:
+        n_done = run_complete(out_dir, fp)
+        if n_done is not None:
+            log.info("run already complete: %s (%d frames)", out_dir / "trajectories.parquet", n_done)
+            return RunResult(trajectories=out_dir / "trajectories.parquet", scene_json=out_dir / "scene.json",
+                             choice=None, n_frames=n_done, wall_time_s=time.perf_counter() - t0,
+                             already_complete=True)
+    made = [] if resume else missing_dirs(out_dir)
+    try:
+        if scene.interactions is not None and getattr(scene.interactions, "any_pair_force", False):
+            from sim.dem import run_dem
+            return run_dem(scene, out_dir, resume=resume, progress=progress)
+        return _run_free(scene, out_dir, fp, progress, resume, max_rows_per_chunk, checkpoint_seconds, max_hours)
+    except BaseException:
+        _tidy_failed(out_dir, made)
+        raise
+
+
+def _run_free(scene: Scene, out_dir: Path, fp: str, progress: bool, resume: bool, max_rows_per_chunk: int,
+              checkpoint_seconds: float, max_hours: float) -> RunResult:
+    """:func:`run_scene` for free particles (no pair forces)."""
+    from sim.checkpoint import load_checkpoint, save_checkpoint
 
     traj_path = out_dir / "trajectories.parquet"
     ck_path = out_dir / "checkpoint.npz"
     scene_json = out_dir / "scene.json"
-    fp = scene_fingerprint(scene.to_dict())  # covers the seed
     if resume:
         # refused at once, before any work or any write
         ck_data, ck_head = load_checkpoint(ck_path, fp)
@@ -272,7 +349,7 @@ def run_scene(scene: Scene, out_dir, seed=None, progress: bool = True, resume: b
     fconst = constant_force(scene, state)
     choice = choose_integrator(scene, state, fconst)
     n_out = int(round(scene.time.final / scene.time.output_interval))
-    check_cost(state.n, n_out, choice)
+    check_cost(state.n, n_out, choice, max_hours)
     resolved = {"scene": scene.to_dict(), "integrator": choice.to_dict(), "n_output_frames": n_out + 1,
                 "gravity_note": "gravity with buoyancy is on unless [gravity] enabled = false",
                 "units": "SI"}
@@ -291,12 +368,8 @@ def run_scene(scene: Scene, out_dir, seed=None, progress: bool = True, resume: b
         stepper.steps_done = int(ck_data["steps_done"])
         stepper.failures = int(ck_data["failures"])
     else:
-        created = prepare_out_dir(out_dir)
-        try:
-            table = SegmentedTable(out_dir, meta)
-        except BaseException:
-            discard_if_empty(out_dir, created)
-            raise
+        prepare_out_dir(out_dir)  # the folders it makes are removed again by run_scene if the run fails empty
+        table = SegmentedTable(out_dir, meta)
     with atomic_output(scene_json, "w") as fh:
         json.dump(resolved, fh, indent=2, default=float)
     n = state.n

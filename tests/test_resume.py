@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -67,11 +68,16 @@ def scene_file(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def reference(scene_file, tmp_path_factory):
+def reference_dir(scene_file, tmp_path_factory):
     out = tmp_path_factory.mktemp("ref")
     r = subprocess.run(_cli(str(scene_file), "--out", str(out)), capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr
-    return _table(out / "trajectories.parquet")
+    return out
+
+
+@pytest.fixture(scope="module")
+def reference(reference_dir):
+    return _table(reference_dir / "trajectories.parquet")
 
 
 def _checkpoint_frame(out):
@@ -135,6 +141,25 @@ def test_double_kill_then_resume(scene_file, reference, tmp_path):
                        timeout=600)
     assert r.returncode == 0, r.stderr
     _assert_same(_table(tmp_path / "trajectories.parquet"), reference)
+
+
+def _files(folder):
+    return {p.relative_to(folder): (p.stat().st_size, p.stat().st_mtime_ns) for p in folder.rglob("*")}
+
+
+def test_resume_of_a_finished_run_is_a_no_op(scene_file, reference_dir, reference, capsys):
+    """--resume of a DEM run that finished: exit 0, "run already complete", nothing computed or rewritten;
+    with another seed it is a different run and is refused as before."""
+    from ptrack.cli import main
+
+    before = _files(reference_dir)
+    assert main(["simulate", str(scene_file), "--out", str(reference_dir), "--resume", "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "run already complete" in err and f"all {reference['frame'].nunique()} frames" in err, err
+    assert _files(reference_dir) == before
+    assert main(["simulate", str(scene_file), "--out", str(reference_dir), "--resume", "--seed", "2", "--quiet"]) == 2
+    assert "different scene" in capsys.readouterr().err
+    assert _files(reference_dir) == before
 
 
 def test_resume_refuses_another_seed_and_keeps_scene_json(scene_file, tmp_path):
@@ -211,8 +236,9 @@ def test_ctrl_c_stops_a_free_particle_run_inside_its_kernels(tmp_path):
     scene = tmp_path / "free.toml"
     scene.write_text(FREE)
     out = tmp_path / "out"
-    p = subprocess.Popen(_cli(str(scene), "--out", str(out)), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                         text=True)
+    # --max-hours: the run is meant to be far too long (it is refused by default, with its ~55 h estimate)
+    p = subprocess.Popen(_cli(str(scene), "--out", str(out), "--max-hours", "1000"), stdout=subprocess.DEVNULL,
+                         stderr=subprocess.PIPE, text=True)
     t0 = time.time()
     # frame 0 is streamed into the first table segment before the first kernel call
     while not list(out.glob(".segments/*.part")) and p.poll() is None and time.time() - t0 < 300:
@@ -320,3 +346,98 @@ def test_free_particle_run_interrupted_then_resumed_equals_uninterrupted(tmp_pat
         run_mod.run_scene(sc, tmp_path / "run", seed=9, resume=True, **kw)
     run_mod.run_scene(sc, tmp_path / "run", resume=True, **kw)
     _assert_same(_table(tmp_path / "run" / "trajectories.parquet"), ref, frames=101)
+
+
+def _free_scene(**time):
+    import tomllib
+
+    from sim.scene import scene_from_dict
+
+    raw = tomllib.loads(FREE)
+    raw["particles"]["count"] = 20
+    raw["time"].update(dt=1e-7, final=1e-4, output_interval=1e-6, **time)
+    return scene_from_dict(raw)
+
+
+def test_free_particle_resume_of_a_finished_run_is_a_no_op(tmp_path):
+    from sim.run import run_complete, run_scene
+    from sim.checkpoint import scene_fingerprint
+
+    sc = _free_scene()
+    first = run_scene(sc, tmp_path, progress=False)
+    assert not first.already_complete and run_complete(tmp_path, scene_fingerprint(sc.to_dict())) == 101
+    before = _files(tmp_path)
+    again = run_scene(sc, tmp_path, progress=False, resume=True)
+    assert again.already_complete and again.n_frames == 101 and again.choice is None
+    assert _files(tmp_path) == before
+
+
+def test_interrupt_before_the_first_commit_leaves_no_segment_folder(tmp_path, monkeypatch):
+    """Ctrl-C before any checkpoint: the table (frame 0, marked incomplete) stays, no empty .segments."""
+    import sim.run as run_mod
+
+    def interrupted(self, *a, **k):
+        raise KeyboardInterrupt("test")
+
+    monkeypatch.setattr(run_mod.Stepper, "advance", interrupted)
+    out = tmp_path / "run"
+    with pytest.raises(KeyboardInterrupt):
+        run_mod.run_scene(_free_scene(), out, progress=False, checkpoint_seconds=1e9)
+    assert sorted(p.name for p in out.iterdir()) == ["scene.json", "trajectories.parquet"]
+    part = _table(out / "trajectories.parquet")
+    assert part["frame"].tolist() == [0] * 20 and part.attrs["ptrack"]["incomplete"].startswith("interrupted")
+
+
+def test_a_full_disk_at_the_start_leaves_no_folder(tmp_path, monkeypatch):
+    """ENOSPC on the first write (scene.json): the OSError reaches the CLI (one line there), and the folders
+    the run made (two levels) are gone; no tmpfs needed."""
+    import errno
+
+    import sim.run as run_mod
+
+    real = run_mod.atomic_output
+
+    def full(path, mode="wb"):
+        if Path(path).name == "scene.json":
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        return real(path, mode)
+
+    monkeypatch.setattr(run_mod, "atomic_output", full)
+    with pytest.raises(OSError):
+        run_mod.run_scene(_free_scene(), tmp_path / "a" / "b", progress=False)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_cost_estimate_uses_the_run_s_dt_and_the_kernel_s_rate():
+    """E = 1e12 V/m on 20 free particles (the fault suite's scene): 8e10 particle-steps, below the old
+    limit of 1e12 particle-steps but ~15 h for the trapezoidal kernel: refused with the estimate; the same
+    allowed with a larger budget."""
+    import tomllib
+
+    from ptrack.errors import UserError
+    from sim.integrate import choose_integrator
+    from sim.run import PARTICLE_STEPS_PER_S, Stepper, check_cost
+    from sim.scene import scene_from_dict
+    from sim.state import build_state, constant_force
+
+    raw = tomllib.loads(FREE)
+    raw["particles"].update(count=20, radius=2.0e-7)
+    raw["particles"].pop("charge")
+    raw["particles"]["charge_per_mass"] = -1.0
+    raw["fields"]["E"] = [0.0, 0.0, 1.0e12]
+    raw["time"] = {"dt": "auto", "final": 5.0e-2, "output_interval": 1.0e-3}
+    raw["integrator"]["kind"] = "auto"
+    sc = scene_from_dict(raw)
+    st = build_state(sc)
+    fc = constant_force(sc, st)
+    ch = choose_integrator(sc, st, fc)
+    assert ch.kind == "trapezoidal"
+    cost = 20 * 50 * ch.steps_per_output
+    assert 1e10 < cost < 1e12
+    with pytest.raises(UserError, match="particle-steps") as exc:
+        check_cost(20, 50, ch)
+    hours = cost / PARTICLE_STEPS_PER_S["trapezoidal"] / 3600
+    assert f"about {hours:.3g} h" in str(exc.value) and "--max-hours" in str(exc.value)
+    assert check_cost(20, 50, ch, max_hours=2 * hours) == cost
+    # the estimate counts the steps of the dt the kernels take: steps x dt = one output interval
+    assert ch.dt * ch.steps_per_output == pytest.approx(sc.time.output_interval, rel=1e-12)

@@ -23,21 +23,27 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=None, help="override the scene's seed")
     p.add_argument("--resume", action="store_true",
                    help="continue an interrupted run from its checkpoint (same scene and seed); the table ends "
-                        "with every frame of an uninterrupted run")
+                        "with every frame of an uninterrupted run (a finished run is left as it is)")
+    p.add_argument("--max-hours", type=float, default=None, metavar="H",
+                   help="free particles: refuse a run estimated to take longer than H hours on one core (default "
+                        "4); the estimate is said when a run is refused")
     p.add_argument("--quiet", action="store_true", help="no progress bar or log lines")
 
 
 def run(args) -> int:
-    from ptrack.errors import UserError
-    from sim.run import run_scene
+    from sim.run import MAX_RUN_HOURS, run_scene
     from sim.scene import load_scene
 
-    if args.seed is not None and args.seed < 0:
-        raise UserError(f"--seed {args.seed} is negative", "give a non-negative integer seed")
     if not args.quiet:
         logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
     scene = load_scene(args.scene)
-    res = run_scene(scene, args.out, seed=args.seed, progress=not args.quiet, resume=args.resume)
+    res = run_scene(scene, args.out, seed=args.seed, progress=not args.quiet, resume=args.resume,
+                    max_hours=MAX_RUN_HOURS if args.max_hours is None else args.max_hours)
+    if res.already_complete:
+        # said even with --quiet: the user asked for work that was not done
+        print(f"run already complete: {res.trajectories} has all {res.n_frames} frames; nothing to resume",
+              file=sys.stderr)
+        return 0
     if not args.quiet:
         ch = getattr(res, "choice", None)
         if ch is not None:
