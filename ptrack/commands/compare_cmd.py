@@ -20,6 +20,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import UserError, check_positive
+from ..options import MOTION_BLUR
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -51,8 +52,9 @@ def _blur(text: str, n: int) -> list:
             v = float(s.split("/")[0]) / float(s.split("/")[1]) if "/" in s else float(s)
         except (ValueError, ZeroDivisionError):
             raise UserError(f"--motion-blur {text!r} is not understood", "give numbers such as 1/6 or 0, comma-separated")
-        if not 0 <= v <= 0.25:
-            raise UserError(f"--motion-blur {s} is outside [0, 1/4]", "use 1/6 for full-frame exposure, 0 instantaneous")
+        why = MOTION_BLUR.problem(v)  # the one range of R (ptrack.options), as for the numeric --motion-blur
+        if why:
+            raise UserError(f"--motion-blur {s} is {why}", f"give --motion-blur as {MOTION_BLUR.expected}")
         vals.append(v)
     if len(vals) == 1:
         vals = vals * n
@@ -78,10 +80,7 @@ def run(args) -> int:
             lags = [check_positive("--lags", float(v)) for v in args.lags.split(",")]
         except ValueError:
             raise UserError(f"--lags {args.lags!r} is not a list of numbers", "give lag times in s, e.g. 0.1,0.4")
-    if not 0 < args.level < 1:
-        raise UserError(f"--level {args.level} is outside (0, 1)", "give a rate such as 0.05")
-    if args.min_particles < 2:
-        raise UserError(f"--min-particles {args.min_particles} is below 2", "give 2 or more")
+    # --level, --n-boot, --n-perm, --seed, --min-particles: checked by ptrack.cli against ptrack.options
     if args.report and Path(args.report).exists() and not Path(args.report).is_dir():
         raise UserError(f"--report {args.report} exists and is not a directory", "give a directory")
     blur = _blur(args.motion_blur, len(args.tables))

@@ -71,19 +71,8 @@ def _check_args(args):
     from .. import msd as M
 
     axes = M.parse_axes(args.dims)
-    if args.radius is not None:
-        check_positive("--radius", args.radius)
-    if args.viscosity is not None:
-        check_positive("--viscosity", args.viscosity)
-    check_positive("--temperature", args.temperature)
-    if args.motion_blur is not None:
-        M.check_motion_blur(args.motion_blur)
-    if args.n_boot < 0:
-        raise UserError(f"--n-boot = {args.n_boot} is negative", "give 0 or a positive number")
-    if not (0 < args.flag_level < 1):
-        raise UserError(f"--flag-level = {args.flag_level!r} outside (0, 1)", "give a rate such as 0.01")
-    if args.max_lag is not None and args.max_lag < 1:
-        raise UserError(f"--max-lag = {args.max_lag} must be at least 1", "give a number of frames")
+    # the numeric options (--radius, --viscosity, --temperature, --motion-blur, --n-boot, --flag-level,
+    # --max-lag, ...) were checked against their ranges by ptrack.cli (ptrack.options, the one table)
     if args.radius is not None and args.viscosity is None:
         raise UserError("--radius given without --viscosity", "give --viscosity (Pa s) for the Stokes-Einstein value")
     if args.tracks_out is not None and Path(args.tracks_out).suffix.lower() != ".csv":

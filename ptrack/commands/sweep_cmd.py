@@ -29,11 +29,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from ptrack.errors import UserError
     from sim.sweep import run_sweep
 
-    if args.workers is not None and args.workers < 1:
-        raise UserError(f"--workers {args.workers} is below 1", "give 1 or more threads")
+    # --workers, --replicates: checked by ptrack.cli against ptrack.options
     if not args.quiet:
         logging.basicConfig(level=logging.WARNING, format="%(message)s", stream=sys.stderr)
     table = run_sweep(args.scene, args.sets, args.out, replicates=args.replicates, scheduler=args.scheduler,

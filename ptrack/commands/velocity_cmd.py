@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import UserError, atomic_output, check_positive
+from ..errors import UserError, atomic_output
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -76,19 +76,14 @@ def run(args) -> int:
     from .. import velocity as V
     from ..table import read_table
 
-    from ..motion.tracks import axis_components, check_motion_blur, resolve_motion_blur
+    from ..motion.tracks import axis_components, resolve_motion_blur
 
-    if args.motion_blur is not None:
-        check_motion_blur(args.motion_blur)
-    if args.bins < 0:
-        raise UserError(f"--bins = {args.bins} is negative", "give 0 (no profile) or a number of bins")
+    # the numeric options (--motion-blur, --bins, --min-frames, --n-boot, --reference, --contact-tolerance...)
+    # were checked against their ranges by ptrack.cli (ptrack.options, the one table). The one copy left:
+    # tests/test_velocity.py calls run() without ptrack.cli and expects this message (to go with that test)
     if args.min_frames < V.MIN_FRAMES:
         raise UserError(f"--min-frames = {args.min_frames} is below {V.MIN_FRAMES}",
                         f"a velocity with a standard error needs at least {V.MIN_FRAMES} positions")
-    if args.n_boot < 0:
-        raise UserError(f"--n-boot = {args.n_boot} is negative", "give 0 or a positive number")
-    if args.reference is not None and not math.isfinite(args.reference):
-        raise UserError(f"--reference = {args.reference!r} is not finite", "give a velocity in m/s")
     traj = Path(args.traj)
     # outputs go where the user points, else into the working folder (never beside the input)
     report = Path(args.report) if args.report else Path.cwd()
@@ -101,13 +96,20 @@ def run(args) -> int:
     df = read_table(traj)
     n_rows_all = len(df)
     if args.contact is not None:
-        check_positive("--contact-tolerance", args.contact_tolerance, allow_zero=True)
         df = V.trim_deposited(df, args.contact, args.contact_tolerance)
         if df.empty:
             raise UserError(f"every row is within {args.contact_tolerance} m of contact (z <= {args.contact + args.contact_tolerance} m)",
                             "check --contact (m, the particle centre at contact) and the table's z")
     z = df["z"].to_numpy(dtype=float)
-    axes = axis_components(args.axes) if args.axes else (("x", "y", "z") if np.isfinite(z).any() else ("x", "y"))
+    z = z[np.isfinite(z)]
+    z_flat = len(z) > 0 and float(z.max()) == float(z.min())  # heights given, but one value: no motion along z
+    if args.axes:
+        axes = axis_components(args.axes)
+        if "z" in axes and z_flat:
+            raise UserError(f"z is {z[0]:.6g} m in every row of {traj}: there is no motion along z to measure",
+                            "give --axes without z (e.g. xy)")
+    else:
+        axes = ("x", "y", "z") if len(z) and not z_flat else ("x", "y")
     R, R_source = resolve_motion_blur(df, args.motion_blur)
     vel = V.particle_velocity(df, axes=axes, motion_blur=R, min_frames=args.min_frames, noise=args.noise)
     n_ok = int(np.isfinite(vel[f"v{axes[0]}"].to_numpy(float)).sum())
@@ -128,6 +130,9 @@ def run(args) -> int:
     print(f"{traj}: {len(vel)} tracks, {n_ok} with >= {args.min_frames} positions; frame interval "
           f"{vel.attrs['velocity']['frame_interval']:.6g} s; motion blur R = {R:.4g} ({R_source}); noise parameters: "
           f"{args.noise}")
+    if z_flat and not args.axes:
+        print(f"note: z is {z[0] * 1e6:.4g} µm in every row (a 2D table): no velocity along z and no profile "
+              "against height; x and y analysed")
     if args.contact is not None:
         print(f"deposition: {n_rows_all - len(df)} of {n_rows_all} rows dropped from touch-down on "
               f"(z within {args.contact_tolerance * 1e6:.3g} µm of contact at {args.contact * 1e6:.3g} µm)")

@@ -475,7 +475,9 @@ def ensemble_velocity(vel: pd.DataFrame, axes=None, weights: str = "inverse_vari
             rows.append({"axis": c, "v": np.nan, "v_err": np.nan, "v_err_model": np.nan, "chi2_dof": np.nan,
                          "n_particles": 0})
             continue
-        w = 1.0 / e**2 if weights == "inverse_variance" else np.ones(n)
+        # inverse variances scaled by the smallest variance (the same weighted mean and error; no overflow
+        # when an error is tiny, e.g. v_z of a table whose z never changes)
+        w = (e.min() / e) ** 2 if weights == "inverse_variance" else np.ones(n)
         mean = float(np.sum(w * v) / np.sum(w))
         err_model = float(math.sqrt(np.sum(w**2 * e**2)) / np.sum(w))
         chi2 = float(np.sum((v - mean) ** 2 / e**2) / (n - 1)) if n > 1 else np.nan
