@@ -166,7 +166,7 @@ OPTIONS: dict[str, Range] = {
     "--bit-depth": whole(1, "bits", hi=16),
     "--scatter-phase": finite("rad"),
     # twin
-    "--field": finite("electric field E_z, V/m"),
+    "--field": Range("a finite non-zero electric field E_z (V/m)", nonzero=True),
     "--density": positive("particle density, kg/m^3"),
     "--fluid-density": positive("kg/m^3"),
     "--debye-length": positive("m"),
