@@ -45,7 +45,6 @@ along rows).
 """
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 
