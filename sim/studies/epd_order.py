@@ -281,7 +281,7 @@ def run_case_in(case: dict, folder, checkpoint_s: float = 300.0) -> dict:
     lock = folder / f"{name}.lock"
     folder.mkdir(parents=True, exist_ok=True)
     try:
-        fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)
     except FileExistsError:
         pid = int((lock.read_text().strip() or "0"))
         try:
@@ -292,7 +292,7 @@ def run_case_in(case: dict, folder, checkpoint_s: float = 300.0) -> dict:
         if alive:
             return {"skipped": name, "running_in_pid": pid}
         lock.unlink(missing_ok=True)
-        fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)
     os.write(fd, str(os.getpid()).encode())
     os.close(fd)
     try:
@@ -369,6 +369,7 @@ def summarise(df, column: str = "solid_fraction"):
         q6=("q6_mean", "mean"), q6_sd=("q6_mean", "std"), steps=("steps", "mean"), n=("n_particles", "first"),
         wall_s=("wall_s", "mean") if "wall_s" in df else ("steps", "size"))
     g["order_sem"] = g.order_sd / np.sqrt(g.n_rep)
+    g["interior_sem"] = g.interior_sd / np.sqrt(g.n_rep)
     g["q6_sem"] = g.q6_sd / np.sqrt(g.n_rep)
     trend = {}
     for al, gg in df.groupby("a_over_lambda"):
@@ -383,7 +384,7 @@ def summarise(df, column: str = "solid_fraction"):
     return g, trend
 
 
-def trend_text(trend: dict) -> list[str]:
+def trend_text(trend: dict, what: str = "order") -> list[str]:
     """One line per a/lambda_D stating the trend and its significance."""
     lines = []
     for al, t in trend.items():
@@ -392,31 +393,36 @@ def trend_text(trend: dict) -> list[str]:
             continue
         word = "falls" if t["slope"] < 0 else "rises"
         sig = "significant at 5 %" if t["p"] is not None and t["p"] < 0.05 else "not significant at 5 %"
-        lines.append(f"a/lambda_D = {al:g}: order {word} with Pe, slope {t['slope']:+.3f} +- {t['se']:.3f} per "
+        lines.append(f"a/lambda_D = {al:g}: {what} {word} with Pe, slope {t['slope']:+.3f} +- {t['se']:.3f} per "
                      f"decade of Pe (t-test p = {t['p']:.2g}, {t['n']} deposits at {t['n_pe']} Pe; {sig})")
     return lines
 
 
-def plot(table, trend, path, title=""):
-    """Order (solid-like fraction) and mean q6 against Pe, mean +- SEM over replicates, with the fitted trend."""
+def plot(table, trend, path, title="", trend_interior=None):
+    """Order (solid-like fraction) of the whole deposit and of its interior, and mean q6, against Pe:
+    mean +- SEM over replicates, with the fitted trends."""
     import matplotlib.pyplot as plt
 
     from sim.studies._output import save_figure
 
-    fig, ax = plt.subplots(1, 2, figsize=(11, 4.2))
+    fig, ax = plt.subplots(1, 3, figsize=(15, 4.3))
+    panels = ((ax[0], "order", "order_sem", trend, "relative order N_solid / N (ten Wolde q6)"),
+              (ax[1], "interior", "interior_sem", trend_interior or {},
+               "order of the interior (z > 3a, below the top 10 %)"))
     for k, (al, gg) in enumerate(table.groupby("a_over_lambda")):
         gg = gg.sort_values("pe")
         col = f"C{k}"
-        ax[0].errorbar(gg.pe, gg.order, yerr=gg.order_sem.fillna(0.0), fmt="o", color=col, capsize=3,
-                       label=f"a/lambda_D = {al:g} (n = {'/'.join(str(int(v)) for v in gg.n_rep)})")
-        t = trend.get(float(al))
-        if t is not None:
-            xs = np.linspace(np.log10(gg.pe.min()), np.log10(gg.pe.max()), 20)
-            icpt = float(np.average(gg.order, weights=gg.n_rep) - t["slope"] * np.average(np.log10(gg.pe),
-                                                                                         weights=gg.n_rep))
-            ax[0].plot(10**xs, icpt + t["slope"] * xs, "--", color=col, lw=1,
-                       label=f"slope {t['slope']:+.2f}/decade, p = {t['p']:.2g}")
-        ax[1].errorbar(gg.pe, gg.q6, yerr=gg.q6_sem.fillna(0.0), fmt="-o", color=col, capsize=3,
+        for a_, y, e, tr, _ in panels:
+            a_.errorbar(gg.pe, gg[y], yerr=gg[e].fillna(0.0), fmt="o", color=col, capsize=3,
+                        label=f"a/lambda_D = {al:g} (n = {'/'.join(str(int(v)) for v in gg.n_rep)})")
+            t = tr.get(float(al))
+            if t is not None:
+                xs = np.linspace(np.log10(gg.pe.min()), np.log10(gg.pe.max()), 20)
+                w = gg.n_rep.to_numpy(float)
+                icpt = float(np.average(gg[y], weights=w) - t["slope"] * np.average(np.log10(gg.pe), weights=w))
+                a_.plot(10**xs, icpt + t["slope"] * xs, "--", color=col, lw=1,
+                        label=f"slope {t['slope']:+.2f} +- {t['se']:.2f}/decade, p = {t['p']:.2g}")
+        ax[2].errorbar(gg.pe, gg.q6, yerr=gg.q6_sem.fillna(0.0), fmt="-o", color=col, capsize=3,
                        label=f"a/lambda_D = {al:g}")
     pes = np.unique(table.pe.to_numpy(float))
     for a_ in ax:
@@ -424,11 +430,12 @@ def plot(table, trend, path, title=""):
         a_.set_xticks(pes, [f"{v:g}" for v in pes])
         a_.minorticks_off()
         a_.set_xlabel("Pe = v_H a / D_SE (4 pi form)")
-        a_.legend(fontsize=8)
-    ax[0].set_ylabel("relative order N_solid / N (ten Wolde q6)")
-    ax[0].set_ylim(-0.02, 1.02)
-    ax[1].set_ylabel("mean q6")
-    ax[0].set_title(title or "EPD deposit order, mean +- SEM over replicates", fontsize=9)
+        a_.legend(fontsize=7)
+    for a_, _, _, _, label in panels:
+        a_.set_ylabel(label)
+        a_.set_ylim(-0.02, 1.02)
+    ax[2].set_ylabel("mean q6")
+    fig.suptitle(title or "EPD deposit order, mean +- SEM over replicates", fontsize=10)
     fig.tight_layout()
     return save_figure(fig, path, dpi=110)
 
@@ -472,6 +479,7 @@ def run(args) -> int:
             r["rep"], r["seed"] = c["rep"], c["seed"]
     df = pd.DataFrame(res)
     table, trend = summarise(df)
+    trend_in = summarise(df, "solid_fraction_interior")[1]
     n_expected = len(cases)
     print("EPD deposit order vs Pe (= v_H a / D_SE, 4 pi form; the seed's eq. 3.37 has 6 pi, 1.5x higher) and "
           "a/lambda_D: ten Wolde solid-like fraction (relative order N_ordered/N), mean +- SD over replicates")
@@ -480,18 +488,19 @@ def run(args) -> int:
     for _, r in table.iterrows():
         print(f"{r.a_over_lambda:9.2f} {r.pe:7.1f} {int(r.n_rep):4d} {r.order:7.3f} {r.order_sd:6.3f} "
               f"{r.interior:8.3f} {r.q6:6.3f} {int(r.steps):9d} {r.wall_s:8.0f}")
-    lines = trend_text(trend)
+    lines = trend_text(trend) + trend_text(trend_in, "interior order")
     for line in lines:
         print(line)
     if args.out and args.collect:
         print(f"{len(df)} finished deposits in {folder} (this command line's grid has {n_expected})")
     summary = {"cases": df.to_dict(orient="records"), "table": table.to_dict(orient="records"),
-               "trend_solid_fraction_vs_log10_pe": {str(k): v for k, v in trend.items()}, "trend_text": lines,
+               "trend_solid_fraction_vs_log10_pe": {str(k): v for k, v in trend.items()},
+               "trend_interior_vs_log10_pe": {str(k): v for k, v in trend_in.items()}, "trend_text": lines,
                "n_cases_finished": len(df), "n_cases_grid": n_expected}
     if args.out:
         plot(table, trend, out / "epd_order.png",
              title=f"EPD deposit order, N = {'/'.join(str(v) for v in sorted(set(df.n_particles)))}, "
-                   f"mean +- SEM over replicates")
+                   f"mean +- SEM over replicates", trend_interior=trend_in)
         write_csv(df, out / "epd_order_cases.csv")
         write_csv(table, out / "epd_order.csv")
         print(f"wrote {out / 'epd_order.png'}, {out / 'epd_order.csv'} and {out / 'epd_order_cases.csv'}",
