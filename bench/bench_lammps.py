@@ -15,7 +15,7 @@ shared, loaded machine the CPU-time ratio is the steadier figure): the wall time
 the wall time of a one-step run of the same scene (start-up: imports, numba
 cache load, placement, reading the data file).  So ours includes its Parquet
 output, checkpoints and dt checks; LAMMPS writes its dump at the same 10
-output times.  Threads: NUMBA_NUM_THREADS / OMP_NUM_THREADS = T for both;
+output times.  Threads: NUMBA_NUM_THREADS / OMP_NUM_THREADS / PTRACK_THREADS = T for both;
 LAMMPS with T > 1 runs its OPENMP styles (``-sf omp -pk omp T``).
 
 Also: the restitution of one head-on collision (particle-particle and
@@ -160,6 +160,7 @@ def thread_env(env: dict, threads: int) -> dict:
     e = dict(env)
     e["NUMBA_NUM_THREADS"] = str(threads)
     e["OMP_NUM_THREADS"] = str(threads)
+    e["PTRACK_THREADS"] = str(threads)  # ours: the DEM pair kernel's threads (sim.dem.dem_threads)
     # on a shared, oversubscribed machine spinning OpenMP barriers stall when a thread loses its core
     # (LAMMPS -sf omp at N = 1000, T = 2 ran 100x slower than T = 1 with the default policy)
     e.setdefault("OMP_WAIT_POLICY", "PASSIVE")

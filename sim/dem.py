@@ -42,12 +42,13 @@ import numpy as np
 from numba import njit
 
 from sim.forces.contact import (CONTACT_NONE, D_MAX_DAMP, D_MAX_OVERLAP, D_MAX_OVERLAP_I, D_MAX_W2, D_N_CONTACTS, D_SIZE,
-                                pair_forces, pair_forces_parallel, param_tuple, wall_contact, wall_forces)
+                                pair_forces, pair_forces_parallel, wall_forces)
 from sim.forces.body import magnetic_force
 from sim.forces.brownian import brownian_sigma
 from sim.forces.drag import drag_force_scalar
-from sim.forces.nearfield import LAW_WIDTH, law_row, law_table, wall_law_force, wall_law_forces
-from sim.neighbors import _build, carry_history, needs_rebuild, wrap_positions
+from sim.forces.nearfield import LAW_WIDTH, law_row, law_table, wall_law_forces
+from sim.neighbors import (_build, carry_history, carry_history_permuted, cell_order, needs_rebuild, permute_rows,
+                           wrap_positions)
 
 # The cached kernels below call a parallel=True kernel; when they are loaded from
 # numba's on-disk cache in a fresh process the threading layer must already be
@@ -206,8 +207,7 @@ def _kick_drift(pos, vel, omega, force, torque, mass, inertia, ref_pos, hdt, dt,
     ``omega``), drift of ``pos``; returns True when some particle moved more than skin/2 since the list
     was built (:func:`sim.neighbors.needs_rebuild`, the same test).  The same arithmetic per particle
     as :func:`_half_kick`, the drift and ``needs_rebuild`` one after the other."""
-    lim = 0.25 * skin * skin
-    moved = False
+    d2max = 0.0
     for i in range(pos.shape[0]):
         im = hdt / mass[i]
         vx = vel[i, 0] + im * force[i, 0]
@@ -230,9 +230,10 @@ def _kick_drift(pos, vel, omega, force, torque, mass, inertia, ref_pos, hdt, dt,
         dx = x - ref_pos[i, 0]
         dy = y - ref_pos[i, 1]
         dz = z - ref_pos[i, 2]
-        if dx * dx + dy * dy + dz * dz > lim:
-            moved = True
-    return moved
+        d2 = dx * dx + dy * dy + dz * dz
+        if d2 > d2max:
+            d2max = d2
+    return d2max > 0.25 * skin * skin
 
 
 @njit(cache=True)
@@ -258,96 +259,6 @@ def _begin_forces(vel, radius, charge, gamma, fconst, drag_mode, extp, seed, ste
 
 
 @njit(cache=True)
-def _walls_kick_check(pos, vel, omega, force, torque, radius, mass, inertia, charge, walls, whist, model, cpw,
-                      wall_laws, rotation, hdt, dt, diag, guards):
-    """End of a velocity-Verlet step in one pass: wall contacts and wall laws (as :func:`_forces` adds
-    them, after the pair forces), the second half kick, and the checks of :func:`_check`.
-
-    Returns ``(status, particle)`` of the first particle failing a check (``(OK, -1)`` if none).
-    """
-    nw = walls.shape[0]
-    contact = nw > 0 and model != CONTACT_NONE
-    laws = nw > 0 and wall_laws.shape[0] > 0
-    vmax2 = guards[G_V_MAX] * guards[G_V_MAX]
-    bottom = guards[G_HAS_BOTTOM] != 0.0
-    status = OK
-    bad = -1
-    ncontact = 0
-    c = param_tuple(cpw)
-    for i in range(pos.shape[0]):
-        if contact:
-            # sim.forces.contact.wall_forces for this particle (the same arithmetic)
-            ri = radius[i]
-            for w in range(nw):
-                nx = walls[w, 3]
-                ny = walls[w, 4]
-                nz = walls[w, 5]
-                d = (pos[i, 0] - walls[w, 0]) * nx + (pos[i, 1] - walls[w, 1]) * ny + (pos[i, 2] - walls[w, 2]) * nz
-                k = i * nw + w
-                if d >= ri:
-                    if whist[k, 0] != 0.0 or whist[k, 1] != 0.0 or whist[k, 2] != 0.0:
-                        whist[k, 0] = 0.0
-                        whist[k, 1] = 0.0
-                        whist[k, 2] = 0.0
-                    continue
-                ncontact += 1
-                ov = (ri - d) / ri
-                if ov > diag[0]:
-                    diag[0] = ov
-                    diag[1] = i
-                fx, fy, fz, tx, ty, tz, sx, sy, sz, w2, dr = wall_contact(
-                    model, c, d, ri, mass[i], vel[i, 0], vel[i, 1], vel[i, 2], omega[i, 0], omega[i, 1],
-                    omega[i, 2], nx, ny, nz, whist[k, 0], whist[k, 1], whist[k, 2], rotation, dt)
-                whist[k, 0] = sx
-                whist[k, 1] = sy
-                whist[k, 2] = sz
-                if w2 > diag[2]:
-                    diag[2] = w2
-                if dr > diag[3]:
-                    diag[3] = dr
-                force[i, 0] += fx
-                force[i, 1] += fy
-                force[i, 2] += fz
-                if rotation:
-                    torque[i, 0] -= tx
-                    torque[i, 1] -= ty
-                    torque[i, 2] -= tz
-        if laws:
-            for w in range(nw):
-                d = ((pos[i, 0] - walls[w, 0]) * walls[w, 3] + (pos[i, 1] - walls[w, 1]) * walls[w, 4]
-                     + (pos[i, 2] - walls[w, 2]) * walls[w, 5])
-                fm = wall_law_force(wall_laws, d, radius[i], charge[i])
-                force[i, 0] += fm * walls[w, 3]
-                force[i, 1] += fm * walls[w, 4]
-                force[i, 2] += fm * walls[w, 5]
-        im = hdt / mass[i]
-        vx = vel[i, 0] + im * force[i, 0]
-        vy = vel[i, 1] + im * force[i, 1]
-        vz = vel[i, 2] + im * force[i, 2]
-        vel[i, 0] = vx
-        vel[i, 1] = vy
-        vel[i, 2] = vz
-        if rotation:
-            ii = hdt / inertia[i]
-            omega[i, 0] += ii * torque[i, 0]
-            omega[i, 1] += ii * torque[i, 1]
-            omega[i, 2] += ii * torque[i, 2]
-        if status == OK:
-            z = pos[i, 2]
-            v2 = vx * vx + vy * vy + vz * vz
-            if not (math.isfinite(pos[i, 0]) and math.isfinite(pos[i, 1]) and math.isfinite(z)
-                    and math.isfinite(v2)):
-                status, bad = BLOWUP_NAN, i
-            elif bottom and z < 0.0:
-                status, bad = BLOWUP_WALL, i
-            elif v2 > vmax2:
-                status, bad = BLOWUP_SPEED, i
-    if contact:
-        diag[4] += ncontact
-    return status, bad
-
-
-@njit(cache=True)
 def rebuild_neighbors(pos, image, radius, cutoff, skin, lo, length, periodic, start, nbj, hist, ref_pos):
     """Wrap positions into the box and rebuild the neighbour list from them.
 
@@ -370,11 +281,56 @@ def rebuild_neighbors(pos, image, radius, cutoff, skin, lo, length, periodic, st
 
 
 @njit(cache=True)
+def rebuild_sorted(pos, image, vel, omega, force, torque, radius, mass, inertia, charge, gamma, fconst, frozen,
+                   whist, order, cutoff, skin, lo, length, periodic, start, nbj, hist, ref_pos):
+    """:func:`rebuild_neighbors` with the particles re-ordered by cell first (cell-ordered memory:
+    partners of a particle sit near it in every per-particle array).
+
+    Every per-particle array (and ``whist``, ``W`` rows per particle) is permuted in place by
+    :func:`sim.neighbors.cell_order` (cell, then particle id), ``order`` (slot -> particle id) with
+    them, and the contact history is carried onto the new list by particle, sign-flipped where a pair
+    changed which particle stores it (:func:`sim.neighbors.carry_history_permuted`).
+    """
+    wrap_positions(pos, image, lo, length, periodic)
+    n = pos.shape[0]
+    perm = cell_order(pos, radius, cutoff, skin, lo, length, periodic, order)
+    permute_rows(pos, perm, 1)
+    permute_rows(image, perm, 1)
+    permute_rows(vel, perm, 1)
+    permute_rows(omega, perm, 1)
+    permute_rows(force, perm, 1)
+    permute_rows(torque, perm, 1)
+    permute_rows(fconst, perm, 1)
+    if n > 0:
+        permute_rows(whist, perm, whist.shape[0] // n)
+    for a in (radius, mass, inertia, charge, gamma, frozen):
+        tmp = a.copy()
+        for q in range(n):
+            a[q] = tmp[perm[q]]
+    tmpo = order.copy()
+    for q in range(n):
+        order[q] = tmpo[perm[q]]
+    ns, nj, nsh = _build(pos, radius, cutoff, skin, lo, length, periodic)
+    hist = carry_history_permuted(start, nbj, hist, ns, nj, perm)
+    ref_pos[:, :] = pos
+    return ns, nj, nsh, hist
+
+
+@njit(cache=True)
+def _rebuild_any(sort, pos, image, vel, omega, force, torque, radius, mass, inertia, charge, gamma, fconst, frozen,
+                 whist, order, cutoff, skin, lo, length, periodic, start, nbj, hist, ref_pos):
+    if sort:
+        return rebuild_sorted(pos, image, vel, omega, force, torque, radius, mass, inertia, charge, gamma, fconst,
+                              frozen, whist, order, cutoff, skin, lo, length, periodic, start, nbj, hist, ref_pos)
+    return rebuild_neighbors(pos, image, radius, cutoff, skin, lo, length, periodic, start, nbj, hist, ref_pos)
+
+
+@njit(cache=True)
 def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
                pos, image, vel, omega, force, torque, radius, mass, inertia, charge, gamma, fconst, frozen,
                drag_mode, extp, seed, model, cp, cpw, pair_laws, wall_laws, rotation, walls, whist,
                start, nbj, shift, hist, ref_pos, cutoff, skin, lo, length, periodic, guards, diag,
-               chunk_peaks, force_rebuild_at_end, nthreads):
+               chunk_peaks, force_rebuild_at_end, nthreads, order, sort):
     """Advance up to ``nsteps`` steps.  Returns
     ``(status, steps_done, particle, start, nbj, shift, hist, ref_pos, n_builds, t_done)``.
 
@@ -425,15 +381,15 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
         t0 = np.empty((0, 3))
     for s in range(nsteps):
         step = step0 + s + 1
-        st = OK
-        p = -1
         if integrator == VERLET:
-            # three passes over the particles per step (kick + drift + skin test; external forces; walls +
-            # kick + checks) around the pair pass: the arithmetic of _half_kick, _forces and _check in the
-            # same order per particle, so the results are those of the separate loops bit for bit
+            # kick + drift + skin test in one pass, external forces with the zeroing in one pass: the
+            # arithmetic of _half_kick, the drift, needs_rebuild and _forces in the same order per particle,
+            # so the results are those of the separate loops bit for bit
             if _kick_drift(pos, vel, omega, force, torque, mass, inertia, ref_pos, hdt, dt, rotation, skin):
-                start, nbj, shift, hist = rebuild_neighbors(pos, image, radius, cutoff, skin, lo, length, periodic,
-                                                            start, nbj, hist, ref_pos)
+                start, nbj, shift, hist = _rebuild_any(sort, pos, image, vel, omega, force, torque, radius, mass,
+                                                       inertia, charge, gamma, fconst, frozen, whist, order,
+                                                       cutoff, skin, lo, length, periodic, start, nbj, hist,
+                                                       ref_pos)
                 nbuild += 1
             _begin_forces(vel, radius, charge, gamma, fconst, drag_mode, extp, seed, step, dt, rotation, force,
                           torque, diag)
@@ -444,8 +400,11 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
                 else:
                     pair_forces(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist, force, torque,
                                 model, cp, pair_laws, rotation, dt, diag)
-            st, p = _walls_kick_check(pos, vel, omega, force, torque, radius, mass, inertia, charge, walls, whist,
-                                      model, cpw, wall_laws, rotation, hdt, dt, diag, guards)
+            if walls.shape[0] > 0 and model != CONTACT_NONE:
+                wall_forces(pos, vel, omega, radius, mass, walls, whist, force, torque, model, cpw, rotation, dt, diag)
+            if walls.shape[0] > 0 and wall_laws.shape[0] > 0:
+                wall_law_forces(pos, radius, charge, walls, wall_laws, force)
+            _half_kick(vel, omega, force, torque, mass, inertia, hdt, rotation)
             t_done += dt
         elif integrator == OVERDAMPED:
             dts = dt
@@ -481,8 +440,10 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
                         pos[i, 2] = 2.0 * radius[i] - pos[i, 2]
             t_done += dts
             if needs_rebuild(pos, ref_pos, skin):
-                start, nbj, shift, hist = rebuild_neighbors(pos, image, radius, cutoff, skin, lo, length, periodic,
-                                                            start, nbj, hist, ref_pos)
+                start, nbj, shift, hist = _rebuild_any(sort, pos, image, vel, omega, force, torque, radius, mass,
+                                                       inertia, charge, gamma, fconst, frozen, whist, order,
+                                                       cutoff, skin, lo, length, periodic, start, nbj, hist,
+                                                       ref_pos)
                 nbuild += 1
             _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt,
                     model, cp, cpw, pair_laws, wall_laws, rotation, walls, whist, start, nbj, shift, hist,
@@ -533,8 +494,10 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
             hist[:, :] = hist0
             whist[:, :] = whist0
             if needs_rebuild(pos, ref_pos, skin):
-                start, nbj, shift, hist = rebuild_neighbors(pos, image, radius, cutoff, skin, lo, length, periodic,
-                                                            start, nbj, hist, ref_pos)
+                start, nbj, shift, hist = _rebuild_any(sort, pos, image, vel, omega, force, torque, radius, mass,
+                                                       inertia, charge, gamma, fconst, frozen, whist, order,
+                                                       cutoff, skin, lo, length, periodic, start, nbj, hist,
+                                                       ref_pos)
                 nbuild += 1
             _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt,
                     model, cp, cpw, pair_laws, wall_laws, rotation, walls, whist, start, nbj, shift, hist,
@@ -547,8 +510,7 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
             chunk_peaks[P_DAMP] = diag[D_MAX_DAMP]
         if diag[D_MAX_OVERLAP] > guards[G_MAX_OVERLAP]:
             return BLOWUP_OVERLAP, s + 1, int(diag[D_MAX_OVERLAP_I]), start, nbj, shift, hist, ref_pos, nbuild, t_done
-        if integrator != VERLET:
-            st, p = _check(pos, vel, radius, guards)
+        st, p = _check(pos, vel, radius, guards)
         if st != OK:
             return st, s + 1, p, start, nbj, shift, hist, ref_pos, nbuild, t_done
         if guards[G_T_STOP] > 0.0 and t_done >= guards[G_T_STOP]:
@@ -556,8 +518,9 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
             return OK, s + 1, -1, start, nbj, shift, hist, ref_pos, nbuild, t_done
     if force_rebuild_at_end:
         # deterministic restart point: list rebuilt from these exact positions
-        start, nbj, shift, hist = rebuild_neighbors(pos, image, radius, cutoff, skin, lo, length, periodic,
-                                                    start, nbj, hist, ref_pos)
+        start, nbj, shift, hist = _rebuild_any(sort, pos, image, vel, omega, force, torque, radius, mass, inertia,
+                                               charge, gamma, fconst, frozen, whist, order, cutoff, skin, lo,
+                                               length, periodic, start, nbj, hist, ref_pos)
         nbuild += 1
     return OK, nsteps, -1, start, nbj, shift, hist, ref_pos, nbuild, t_done
 
@@ -613,13 +576,22 @@ class DEMSystem:
         1: serial pair kernel (bitwise reproducible); T > 1: the threaded
         kernel with T blocks (reproducible for the same T, round-off
         differences from the serial sum).
+    sort : bool
+        Cell-ordered memory: at every neighbour-list rebuild the particles
+        are re-ordered by cell (then id) in every per-particle array, so
+        the partners of a particle are near it in memory (faster for large
+        N; the summation order of the pair forces changes, so results differ
+        from ``sort=False`` by round-off).  The arrays are then in *slot*
+        order: ``particle_order[s]`` is the id of the particle in slot ``s``;
+        :meth:`by_id` returns an array in id order, and :meth:`get_state`,
+        ``fail_particle`` and checkpoints use ids.
     """
 
     def __init__(self, pos, vel, radius, mass, charge=None, *, model=1, cp=None, cpw=None, nf_model=0,
                  nfp=None, pair_laws=None, wall_laws=None, rotation=True, walls=None, box_lo=(0, 0, 0), box_length=(1, 1, 1),
                  periodic=(0, 0, 0), fconst=None, drag_mode=DRAG_NONE, gamma=None, extp=None, dt=1e-6,
                  skin=None, cutoff=0.0, seed=0, max_overlap=0.5, v_max=np.inf, integrator=0, phi=0.0,
-                 n_iter=3, threads=1, tol=1e-10, substrate=None, max_step=0.0):
+                 n_iter=3, threads=1, tol=1e-10, substrate=None, max_step=0.0, sort=False):
         f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
         self.pos = f64(np.array(pos, dtype=np.float64, copy=True))
         n = len(self.pos)
@@ -664,6 +636,12 @@ class DEMSystem:
         self.phi = float(phi)
         self.n_iter = int(n_iter)
         self.threads = int(threads)
+        self.sort = bool(sort)
+        self.particle_order = np.arange(n, dtype=np.int64)  # slot -> particle id (identity unless sort)
+        # own every per-particle array (no caller's array or read-only view): the kernels write them (the
+        # cell re-ordering permutes them in place), and one array type means one compiled kernel
+        for k in ("radius", "mass", "inertia", "charge", "gamma", "fconst"):
+            setattr(self, k, np.array(getattr(self, k), dtype=np.float64, order="C", copy=True))
         self.step = 0
         self.t = 0.0
         self.n_builds = 0
@@ -688,6 +666,21 @@ class DEMSystem:
     def _rebuild(self, history):
         from sim.neighbors import build_neighbor_list
 
+        if self.sort:
+            # history (CSR over the current slots) is carried through the re-ordering by the kernel
+            if history is None:
+                history = (np.zeros(self.n + 1, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros((0, 3)))
+            if self.n and np.any(self.periodic):
+                build_neighbor_list(self.pos[:1], self.radius, self.cutoff, self.skin, self.lo, self.length,
+                                    self.periodic)  # box-size check with its UserError
+            self.ref_pos = np.empty_like(self.pos)
+            self.start, self.nbj, self.shift, self.hist = rebuild_sorted(
+                self.pos, self.image, self.vel, self.omega, self.force, self.torque, self.radius, self.mass,
+                self.inertia, self.charge, self.gamma, self.fconst, self.frozen, self.whist, self.particle_order,
+                self.cutoff, self.skin, self.lo, self.length, self.periodic, history[0], history[1],
+                np.ascontiguousarray(history[2], dtype=np.float64), self.ref_pos)
+            self.n_builds += 1
+            return
         start, nbj, shift = build_neighbor_list(self.pos, self.radius, self.cutoff, self.skin, self.lo,
                                                 self.length, self.periodic)
         if history is None:
@@ -757,7 +750,8 @@ class DEMSystem:
                              self.wall_laws, self.rotation, self.walls, self.whist, self.start, self.nbj,
                              self.shift, self.hist, self.ref_pos, self.cutoff, self.skin, self.lo, self.length,
                              self.periodic, self.guards, self.diag, self.chunk_peaks,
-                             bool(rebuild_at_end) and k == left, int(self.threads))
+                             bool(rebuild_at_end) and k == left, int(self.threads), self.particle_order,
+                             self.sort)
             status, done, part, self.start, self.nbj, self.shift, self.hist, self.ref_pos, nb, t_done = out
             if chunker is not None:
                 chunker.done(done * self.n)
@@ -768,7 +762,7 @@ class DEMSystem:
             self.t = self.t + t_done if self.integrator == OVERDAMPED else t0 + done_here * self.dt
             self.n_builds += nb
             self.status = status
-            self.fail_particle = part
+            self.fail_particle = int(self.particle_order[part]) if part >= 0 else part
             left -= done
             self.guards[G_T_STOP] = 0.0
             if status != OK:
@@ -787,12 +781,16 @@ class DEMSystem:
         Contact history is stored as (i, j, spring) triples of the non-zero
         entries, so it can be mapped onto any list built later.
         """
-        d = {k: getattr(self, k).copy() for k in self.STATE_ARRAYS}
+        d = {k: self.by_id(getattr(self, k)) for k in self.STATE_ARRAYS}
         ii = np.repeat(np.arange(self.n), np.diff(self.start))
         nz = np.any(self.hist != 0.0, axis=1)
-        d["hist_i"] = ii[nz]
-        d["hist_j"] = self.nbj[nz]
-        d["hist_v"] = self.hist[nz]
+        hi, hj, hv = self.particle_order[ii[nz]], self.particle_order[self.nbj[nz]], self.hist[nz].copy()
+        swap = hi > hj  # stored under the smaller id; the spring is that particle's (sign flips with the roles)
+        hi[swap], hj[swap] = hj[swap], hi[swap].copy()
+        hv[swap] = -hv[swap]
+        d["hist_i"] = hi
+        d["hist_j"] = hj
+        d["hist_v"] = hv
         d["step"] = np.int64(self.step)
         d["t"] = np.float64(self.t)
         d["dt"] = np.float64(self.dt)
@@ -804,10 +802,12 @@ class DEMSystem:
             if k == "frozen" and k not in d:  # checkpoints written before the overdamped stepper
                 self.frozen = np.zeros(len(d["pos"]))
                 continue
-            setattr(self, k, np.ascontiguousarray(d[k], dtype=np.float64))
+            # a copy: the snapshot must survive the run (run_dem rolls back to the same snapshot again)
+            setattr(self, k, np.array(d[k], dtype=np.float64, order="C", copy=True))
         self.step = int(d["step"])
         self.t = float(d["t"])
         self.dt = float(d["dt"])
+        self.particle_order = np.arange(self.n, dtype=np.int64)  # the snapshot is in id order
         hi = np.asarray(d["hist_i"], dtype=np.int64)
         order = np.argsort(hi, kind="stable")
         hi = hi[order]
@@ -816,6 +816,20 @@ class DEMSystem:
         ostart = np.cumsum(ostart)
         self._rebuild(history=(ostart, np.asarray(d["hist_j"], dtype=np.int64)[order],
                                np.ascontiguousarray(np.asarray(d["hist_v"], dtype=np.float64)[order].reshape(-1, 3))))
+
+    def by_id(self, a):
+        """Copy of a per-particle array (or ``whist``, W rows per particle) in particle-id order."""
+        a = np.asarray(a)
+        if not self.sort or self.n == 0:
+            return a.copy()
+        block = a.shape[0] // self.n
+        out = np.empty_like(a)
+        if block == 1:
+            out[self.particle_order] = a
+        elif block > 1:
+            rows = (self.particle_order[:, None] * block + np.arange(block)[None, :]).ravel()
+            out[rows] = a
+        return out
 
     def kinetic_energy(self):
         """Translational + rotational kinetic energy (J)."""
@@ -955,8 +969,11 @@ def auto_dt(inter, radius, mass, fconst, gamma=None, drag=False, v0=None, height
     return dt, why
 
 
-def system_from_scene(scene, state=None, dt=None):
-    """Build a :class:`DEMSystem` for a scene with pair interactions; returns ``(system, state)``."""
+def system_from_scene(scene, state=None, dt=None, sort=False, threads=1):
+    """Build a :class:`DEMSystem` for a scene with pair interactions; returns ``(system, state)``.
+
+    ``sort`` and ``threads`` are :class:`DEMSystem`'s options (cell-ordered memory, pair-kernel threads).
+    """
     from sim.state import build_state, constant_force
 
     inter = scene.interactions
@@ -971,8 +988,8 @@ def system_from_scene(scene, state=None, dt=None):
                        rotation=inter.rotation, walls=scene_walls(scene), box_lo=(0, 0, 0),
                        box_length=scene.domain.size, periodic=periodic, fconst=fconst, drag_mode=drag_mode,
                        gamma=st.gamma, extp=extp, dt=1e-9 if dt is None else dt, skin=inter.skin,
-                       cutoff=inter.cutoff, seed=scene.seed, max_overlap=inter.max_overlap,
-                       **_integrator_options(scene))
+                       cutoff=inter.cutoff, seed=scene.seed, max_overlap=inter.max_overlap, sort=sort,
+                       threads=threads, **_integrator_options(scene))
     return system, st
 
 
@@ -987,13 +1004,14 @@ def _integrator_options(scene):
 
 def _frame_df(frame, system):
     n = system.n
-    up = system.unwrapped
+    up = system.by_id(system.unwrapped)
+    vel = system.by_id(system.vel)
     import pandas as pd
 
     return pd.DataFrame({
         "frame": np.full(n, frame, dtype=np.int64), "t": np.full(n, system.t), "particle": np.arange(n, dtype=np.int64),
         "x": up[:, 0], "y": up[:, 1], "z": up[:, 2],
-        "vx": system.vel[:, 0], "vy": system.vel[:, 1], "vz": system.vel[:, 2], "radius": system.radius.copy(),
+        "vx": vel[:, 0], "vy": vel[:, 1], "vz": vel[:, 2], "radius": system.by_id(system.radius),
     })
 
 
@@ -1023,7 +1041,30 @@ class DEMResult:
         return self.summary.keys()
 
 
-def run_dem(scene, out_dir, resume=False, progress=True, checkpoint_every=None, max_rollbacks=12):
+def dem_threads(scene=None, threads=None):
+    """Threads of the DEM pair kernel: ``threads`` if given, else the scene's ``contact.threads`` (when the
+    schema has it), else the environment variable ``PTRACK_THREADS``, else 1 (serial, bit-reproducible)."""
+    import os
+
+    from ptrack.errors import UserError
+
+    if threads is None and scene is not None and scene.interactions is not None:
+        threads = getattr(scene.interactions, "threads", None)
+    src = "threads"
+    if threads is None and os.environ.get("PTRACK_THREADS"):
+        threads, src = os.environ["PTRACK_THREADS"], "PTRACK_THREADS"
+    if threads is None:
+        return 1
+    try:
+        t = int(threads)
+    except (TypeError, ValueError):
+        t = 0
+    if t < 1:
+        raise UserError(f"{src} = {threads!r} is not a positive whole number", "give 1, 2, ... threads")
+    return t
+
+
+def run_dem(scene, out_dir, resume=False, progress=True, checkpoint_every=None, max_rollbacks=12, threads=None):
     """Run a scene with pair interactions; stream ``trajectories.parquet``.
 
     Parameters
@@ -1045,6 +1086,13 @@ def run_dem(scene, out_dir, resume=False, progress=True, checkpoint_every=None, 
         tqdm bar on stderr.
     checkpoint_every : int, optional
         Output frames between checkpoints (default ``contact.checkpoint_every``).
+    threads : int, optional
+        Pair-kernel threads (:func:`dem_threads`: default the scene's, else
+        ``PTRACK_THREADS``, else 1). With T > 1 the pair sums are taken in T
+        blocks: reproducible for a given T, round-off apart from T = 1.
+
+    The particles are kept in cell order in memory (``DEMSystem(sort=True)``);
+    the table is in particle-id order as always.
 
     Returns
     -------
@@ -1093,7 +1141,8 @@ def run_dem(scene, out_dir, resume=False, progress=True, checkpoint_every=None, 
     else:
         created = prepare_out_dir(out_dir)
     try:
-        system, st = system_from_scene(scene)
+        nthreads = dem_threads(scene, threads)
+        system, st = system_from_scene(scene, sort=True, threads=nthreads)
         _check_start(system, inter)
     except UserError:
         discard_if_empty(out_dir, created)
@@ -1203,7 +1252,7 @@ def run_dem(scene, out_dir, resume=False, progress=True, checkpoint_every=None, 
     wall = time.perf_counter() - t_wall
     summary.update({"steps": int(system.step), "wall_time_s": wall, "n_frames": n_out + 1, "dt_final": system.dt,
                     "n_builds": int(system.n_builds), "resumed_from_step": resumed_from,
-                    "n_particles": int(system.n)})
+                    "n_particles": int(system.n), "threads": int(system.threads)})
     with atomic_output(out_dir / "dem_summary.json", "w") as fh:
         json.dump(summary, fh, indent=2, default=float)
     return DEMResult(traj_path, scene_json, n_out + 1, wall, summary, system)
@@ -1216,7 +1265,7 @@ def _check_start(system, inter):
 
     ov = float(system.diag[D_MAX_OVERLAP])
     if ov > inter.max_overlap:
-        i = int(system.diag[D_MAX_OVERLAP_I])
+        i = int(system.particle_order[int(system.diag[D_MAX_OVERLAP_I])])
         raise UserError(f"the starting positions overlap: particle {i} overlaps a neighbour or a wall by {ov:.3g} "
                         f"of its radius (limit contact.max_overlap = {inter.max_overlap:g})",
                         "place the particles without overlap: a larger domain or placement_z range, fewer "

@@ -31,6 +31,9 @@ from numba import njit
 __all__ = [
     "build_neighbor_list",
     "carry_history",
+    "carry_history_permuted",
+    "cell_order",
+    "permute_rows",
     "needs_rebuild",
     "wrap_positions",
     "brute_force_pairs",
@@ -327,6 +330,90 @@ def carry_history(old_start, old_nbj, old_hist, new_start, new_nbj):
                     if nonzero:
                         for c in range(h):
                             new_hist[k, c] = old_hist[q, c]
+                    break
+    return new_hist
+
+
+@njit(cache=True)
+def cell_order(pos, radius, cutoff, skin, lo, length, periodic, ids):
+    """Order of the particles by list cell, ties by particle id: ``perm`` (N,) with ``perm[s]`` the
+    current slot of the particle that goes to slot ``s``.
+
+    The cells are those :func:`_build` bins into; ``ids`` (N,) gives the particle id held in each
+    slot.  The order depends only on the positions and the ids, not on the current slot order, so a
+    run rebuilt from a checkpoint (slots in id order) gets the same layout as the uninterrupted run.
+    """
+    n = pos.shape[0]
+    perm = np.empty(n, dtype=np.int64)
+    if n == 0:
+        return perm
+    rmax = 0.0
+    for i in range(n):
+        if radius[i] > rmax:
+            rmax = radius[i]
+    cell_size = 2.0 * rmax
+    if cutoff > cell_size:
+        cell_size = cutoff
+    cell_size += skin
+    ncell, cell_of, counts, _ = _bin_particles(pos, cell_size, lo, length, periodic)
+    slot_of = np.empty(n, dtype=np.int64)
+    for q in range(n):
+        slot_of[ids[q]] = q
+    fill = counts[:-1].copy()
+    for pid in range(n):
+        q = slot_of[pid]
+        c = cell_of[q]
+        perm[fill[c]] = q
+        fill[c] += 1
+    return perm
+
+
+@njit(cache=True)
+def permute_rows(a, perm, block):
+    """In place: rows ``[s*block, (s+1)*block)`` of ``a`` (2-D) become the old rows of slot ``perm[s]``."""
+    tmp = a.copy()
+    w = a.shape[1]
+    for s in range(perm.shape[0]):
+        o = perm[s]
+        for b in range(block):
+            for c in range(w):
+                a[s * block + b, c] = tmp[o * block + b, c]
+
+
+@njit(cache=True)
+def carry_history_permuted(old_start, old_nbj, old_hist, new_start, new_nbj, perm):
+    """:func:`carry_history` across a re-ordering of the particles: the new list is in the new slots,
+    the old one in the old slots, ``perm[new slot] = old slot``.
+
+    A pair stored under its other particle now (the half list keeps ``j > i``) swaps the roles of i
+    and j, and its tangential spring, being i's relative displacement, changes sign.
+    """
+    n = new_start.shape[0] - 1
+    h = old_hist.shape[1]
+    new_hist = np.zeros((new_nbj.shape[0], h))
+    if old_hist.shape[0] == 0:
+        return new_hist
+    for inew in range(n):
+        a = perm[inew]
+        for k in range(new_start[inew], new_start[inew + 1]):
+            b = perm[new_nbj[k]]
+            if a < b:
+                row = a
+                other = b
+                sign = 1.0
+            else:
+                row = b
+                other = a
+                sign = -1.0
+            for q in range(old_start[row], old_start[row + 1]):
+                if old_nbj[q] == other:
+                    nonzero = False
+                    for c in range(h):
+                        if old_hist[q, c] != 0.0:
+                            nonzero = True
+                    if nonzero:
+                        for c in range(h):
+                            new_hist[k, c] = sign * old_hist[q, c]
                     break
     return new_hist
 
