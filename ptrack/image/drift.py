@@ -110,10 +110,11 @@ def frame_drift(frames, pixel_size: float, frame_interval: float | None = None, 
         its upsampled DFT); parabolas through the correlation at stencils
         shrinking from half that grid to 1/128 of it then refine it. The
         grid alone leaves a uniform error of +-1/(2 upsample) px, which a
-        running reference accumulates; the refinement is as accurate and
-        much cheaper (measured on 256 x 320 frames: 0.6e-3 px with 1, the
-        same with 10; skimage's upsampled DFT takes 25-75 ms per frame on a
-        busy 2-core machine, where its BLAS threads stall; the parabolas
+        running reference accumulates; the refinement is more accurate
+        and much cheaper (clean periodic 256^2 frames: < 1e-4 px RMS with 1
+        or 10, against 6e-4 px for skimage's grid at 10 and a parabola;
+        skimage's upsampled DFT takes 25-75 ms per 256 x 320 frame on a
+        busy 2-core machine, where its BLAS threads stall, the parabolas
         ~2 ms).
     window : int
         Frames in the running reference (the last ``window`` frames, each
