@@ -87,3 +87,41 @@ def test_wrap_keeps_unwrapped_and_rebuild_criterion():
     assert not needs_rebuild(moved, ref, 0.1)
     moved[7, 0] += 0.002
     assert needs_rebuild(moved, ref, 0.1)
+
+
+def test_history_carried_across_a_reordering_changes_sign_with_the_roles():
+    """After a re-ordering a pair can be stored under its other particle (the half list keeps j > i);
+    its tangential spring is the first particle's relative displacement, so it changes sign, and the
+    contact law then gives the same forces (swapped) as before."""
+    from sim.forces.contact import CONTACT_HOOKE, contact_force_pair, hooke_params
+    from sim.neighbors import carry_history_permuted, cell_order
+
+    h = np.array([[1.5e-4, -0.7e-4, 0.2e-4]])
+    start = np.array([0, 1, 1, 1], dtype=np.int64)  # old slots: pair (0, 2), particle 1 alone
+    nbj = np.array([2], dtype=np.int64)
+    perm = np.array([2, 1, 0], dtype=np.int64)      # new slot 0 holds old slot 2, new 2 holds old 0
+    new = carry_history_permuted(start, nbj, h, start, nbj, perm)  # new list: pair (0, 2) in new slots
+    np.testing.assert_array_equal(new, -h)
+    same = carry_history_permuted(start, nbj, h, start, nbj, np.array([0, 1, 2], dtype=np.int64))
+    np.testing.assert_array_equal(same, h)
+    # the law with the roles swapped and the spring negated: the same forces on the same bodies
+    cp = hooke_params(1e6, 0.5, mu=0.4)
+    xi, xj = [0.0, 0.0, 0.0], [0.099, 0.003, 0.0]
+    vi, vj, wi, wj = [0.1, 0.3, -0.2], [-0.2, 0.0, 0.1], [1.0, -2.0, 0.5], [0.0, 3.0, 1.0]
+    fi, fj, ti, tj, hij = contact_force_pair(CONTACT_HOOKE, cp, xi, xj, 0.05, 0.05, 1.0, 1.2, vi, vj, wi, wj,
+                                             hist=h[0])
+    gj, gi, uj, ui, hji = contact_force_pair(CONTACT_HOOKE, cp, xj, xi, 0.05, 0.05, 1.2, 1.0, vj, vi, wj, wi,
+                                             hist=-h[0])
+    np.testing.assert_allclose(gi, fi, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(gj, fj, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(ui, ti, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(hji, -hij, rtol=1e-12, atol=1e-18)
+    # the cell order depends on the positions and the ids, not on the slots they are in
+    rng = np.random.default_rng(5)
+    pos = rng.uniform(0, 1, (50, 3))
+    rad = np.full(50, 0.04)
+    lo, L, per = np.zeros(3), np.ones(3), np.array([1, 1, 0], dtype=np.int64)
+    p0 = cell_order(pos, rad, 0.0, 0.01, lo, L, per, np.arange(50, dtype=np.int64))
+    shuffle = rng.permutation(50)
+    p1 = cell_order(pos[shuffle], rad, 0.0, 0.01, lo, L, per, shuffle.astype(np.int64))
+    np.testing.assert_array_equal(shuffle[p1], p0)
