@@ -16,7 +16,7 @@ from .fit import fit_spots
 from .peaks import _default_separation, detect_raw, find_peaks
 from .detect import FALSE_ALARM_RATE, detect
 from .preprocess import median3, noise_sigma
-from .radial import radial_centres
+from .radial import has_dip, image_extent, profile_centres, radial_centres
 
 __all__ = ["locate", "estimate_sigma", "sigma_to_diameter", "diameter_to_sigma", "repair_hot_pixels",
            "LOCATE_COLUMNS", "MULTISCALE_COLUMNS"]
@@ -24,9 +24,16 @@ __all__ = ["locate", "estimate_sigma", "sigma_to_diameter", "diameter_to_sigma",
 LOCATE_COLUMNS = ("x_px", "y_px", "mass", "size", "ecc", "signal", "photons", "bg_photons",
                   "sigma_x_px", "sigma_y_px")
 #: Extra columns of the multi-scale path: detection SNR (local noise units), localiser used
-#: ("gauss" or "radial"), image polarity (+1 bright, -1 dark particles).
+#: ("gauss": Gaussian fit; "radial": a centre-symmetric estimator, the free radial-profile fit of
+#: :func:`ptrack.image.radial.profile_centres` or, where it fails, the radial-symmetry centre),
+#: image polarity (+1 bright, -1 dark particles).
 MULTISCALE_COLUMNS = ("snr", "method", "polarity")
 _METHODS = ("gauss", "radial")
+#: Fitted Gaussian width (px) from which an image is not taken for a Gaussian spot: wider than the
+#: coarsest default scale, it is a defocused image or a large particle, and its centre comes from the free
+#: radial-profile fit (on a true Gaussian the profile fit is ~1.5x less precise than the Gaussian fit: it
+#: refits the profile to the noise, so Gaussian-like images keep the Gaussian fit)
+LARGE_IMAGE = 4.0
 
 
 def diameter_to_sigma(diameter: float) -> float:
@@ -295,6 +302,16 @@ def _ring_like(sub, rows, cols, scale, noise, out):
         out[k] = core < mid or neg < -4.0 * noise / math.sqrt(max(nn, 1))
 
 
+def _nearest_other(rows, cols):
+    """Distance (px) from each detection to the nearest other one (inf when alone)."""
+    if len(rows) < 2:
+        return np.full(len(rows), np.inf)
+    from scipy.spatial import cKDTree
+
+    pts = np.c_[cols, rows].astype(float)
+    return cKDTree(pts).query(pts, k=2)[0][:, 1]
+
+
 def _locate_multiscale(frame, snr=None, gain=1.0, offset=0.0, read_noise=0.0, brightfield=None, median=True,
                        min_photons=0.0, scales=None, rate=FALSE_ALARM_RATE, centre="auto", frame_no=0, cache=None):
     """The knob-free path of :func:`locate` (see there)."""
@@ -372,6 +389,19 @@ def _locate_multiscale(frame, snr=None, gain=1.0, offset=0.0, read_noise=0.0, br
             vx, vy = np.r_[vx, fit["var_x"][extra]], np.r_[vy, fit["var_y"][extra]]
             photons, bgp = np.r_[photons, fit["photons"][extra]], np.r_[bgp, fit["bg"][extra]]
             size, ecc, ok = np.r_[size, fit["s"][extra]], np.r_[ecc, fit["ecc"][extra]], np.r_[ok, fit["ok"][extra]]
+    # images a Gaussian does not describe, fitted with a free radial profile about a free centre
+    # (radial.profile_centres) over the image's extent measured from the data: rings, and blobs that are
+    # not diffraction-limited spots (Gaussian width >= LARGE_IMAGE px: defocused) or that sit in a ring of
+    # the opposite sign (a bright centre in a dark ring)
+    blob_ok = blob & ok & np.isfinite(x) & np.isfinite(y)
+    nn_d = _nearest_other(rows, cols)
+    H_, W_ = sub.shape
+    edge_d = np.minimum.reduce([rows, cols, H_ - 1 - rows, W_ - 1 - cols]) - 1 if len(rows) else np.zeros(0)
+    rmax_all = np.clip(np.minimum(np.floor(0.6 * nn_d), edge_d), 4, 24)
+    sym = blob_ok & (size >= LARGE_IMAGE)
+    rest = np.nonzero(blob_ok & ~sym)[0]
+    if len(rest):
+        sym[rest] = has_dip(sub, x[rest], y[rest], nzmap[rows[rest], cols[rest]], rmax_all[rest])
     q = np.nonzero(ring)[0]
     if len(q):
         half = np.maximum(4, np.ceil(3.0 * scale[q])).astype(np.int64)
@@ -381,6 +411,16 @@ def _locate_multiscale(frame, snr=None, gain=1.0, offset=0.0, read_noise=0.0, br
         photons[q] = [float(np.clip(sub[max(0, r - h):r + h + 1, max(0, c - h):c + h + 1], 0, None).sum()) / gain
                       for r, c, h in zip(rows[q], cols[q], half)] if len(q) < 5000 else np.nan
         bgp[q] = (bgmap[rows[q], cols[q]] - (offset if poisson else 0.0)) / (gain if poisson else 1.0)
+    q = np.nonzero((ring & ok) | sym)[0]
+    if len(q):
+        rmax = rmax_all[q]
+        ext = image_extent(sub, x[q], y[q], nzmap[rows[q], cols[q]], np.minimum(np.maximum(4, np.ceil(3.0 * scale[q])), rmax), rmax)
+        pf = profile_centres(sub, rows[q], cols[q], np.minimum(np.ceil(ext) + 2, rmax).astype(np.int64), x[q], y[q],
+                             noise=nzmap[rows[q], cols[q]], shot=gain if poisson else 0.0)
+        use = pf["ok"]
+        for a, b_ in ((x, "x"), (y, "y"), (vx, "var_x"), (vy, "var_y")):
+            a[q] = np.where(use, pf[b_], a[q])
+        ring[q] |= use
     mass = photons * (gain if poisson else 1.0)
     keep = ok & np.isfinite(x) & np.isfinite(y) & (np.nan_to_num(photons, nan=np.inf) > min_photons)
     k = np.nonzero(keep)[0]
