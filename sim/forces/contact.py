@@ -51,7 +51,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from sim.forces.nearfield import LAW_WIDTH, fast_pow, pair_law_force
+from sim.forces.nearfield import LAW_WIDTH, MAX_TUPLE_LAWS, fast_pow, law_tuples, pair_law_force, pair_law_force_t
 
 CONTACT_NONE = 0
 CONTACT_HOOKE = 1
@@ -217,9 +217,16 @@ def _pair_rows(i0, i1, pos, vel, omega, radius, mass, charge, start, nbj, shift,
     for every listed pair; L = 0 for contact only.
     """
     far_laws = laws.shape[0] > 0
+    nl = laws.shape[0]
+    tuple_laws = nl <= MAX_TUPLE_LAWS
+    codes, lparams = law_tuples(laws)
     c = param_tuple(cp)
     ncontact = 0
     for i in range(i0, i1):
+        k0 = start[i]
+        k1 = start[i + 1]
+        if k0 == k1:
+            continue  # no partners: adding zero forces is a no-op (up to the sign of a zero)
         xi = pos[i, 0]
         yi = pos[i, 1]
         zi = pos[i, 2]
@@ -234,7 +241,7 @@ def _pair_rows(i0, i1, pos, vel, omega, radius, mass, charge, start, nbj, shift,
         txi = 0.0
         tyi = 0.0
         tzi = 0.0
-        for k in range(start[i], start[i + 1]):
+        for k in range(k0, k1):
             j = nbj[k]
             dx = xi - pos[j, 0] + shift[k, 0]
             dy = yi - pos[j, 1] + shift[k, 1]
@@ -304,7 +311,10 @@ def _pair_rows(i0, i1, pos, vel, omega, radius, mass, charge, start, nbj, shift,
                 hist[k, 1] = 0.0
                 hist[k, 2] = 0.0
             if far_laws:
-                fm = pair_law_force(laws, r, ri, rj, charge[i], charge[j])
+                if tuple_laws:
+                    fm = pair_law_force_t(nl, codes, lparams, r, ri, rj, charge[i], charge[j])
+                else:
+                    fm = pair_law_force(laws, r, ri, rj, charge[i], charge[j])
                 fx += fm * nx
                 fy += fm * ny
                 fz += fm * nz

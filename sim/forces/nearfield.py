@@ -92,6 +92,44 @@ def pair_law_force(laws, r, ri, rj, qi, qj):
     return f
 
 
+MAX_TUPLE_LAWS = 4  # law rows the pair kernel takes as tuples (more rows: the array form)
+
+
+@njit(cache=True, inline="always")
+def _row(laws, k):
+    if k >= laws.shape[0]:
+        return 0, (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    return int(laws[k, 0]), (laws[k, 1], laws[k, 2], laws[k, 3], laws[k, 4], laws[k, 5], laws[k, 6], laws[k, 7])
+
+
+@njit(cache=True, inline="always")
+def law_tuples(laws):
+    """The first :data:`MAX_TUPLE_LAWS` rows of a law table as ``(codes, params)`` tuples (zero rows
+    padded), for :func:`pair_law_force_t`."""
+    c0, p0 = _row(laws, 0)
+    c1, p1 = _row(laws, 1)
+    c2, p2 = _row(laws, 2)
+    c3, p3 = _row(laws, 3)
+    return (c0, c1, c2, c3), (p0, p1, p2, p3)
+
+
+@njit(cache=True, inline="always")
+def pair_law_force_t(nl, codes, params, r, ri, rj, qi, qj):
+    """:func:`pair_law_force` of a table of ``nl <= MAX_TUPLE_LAWS`` rows given by :func:`law_tuples`: the
+    same sum in the same order, without array arguments per pair (their reference counting cost more
+    than the laws)."""
+    f = 0.0
+    if nl > 0:
+        f += nearfield_magnitude(codes[0], params[0], r, ri, rj, qi, qj)
+    if nl > 1:
+        f += nearfield_magnitude(codes[1], params[1], r, ri, rj, qi, qj)
+    if nl > 2:
+        f += nearfield_magnitude(codes[2], params[2], r, ri, rj, qi, qj)
+    if nl > 3:
+        f += nearfield_magnitude(codes[3], params[3], r, ri, rj, qi, qj)
+    return f
+
+
 @njit(cache=True, inline="always")
 def wall_law_force(laws, d, ri, qi):
     """Sum over the wall-law table of the force (N) along the wall's inward normal on a particle
