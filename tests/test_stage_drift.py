@@ -32,7 +32,8 @@ def movie(n_frames, step_px, rng, n=50, jump_at=None, jump=(6.3, -4.7), n_stuck=
     ``jump_at`` on), under an illumination fixed to the camera (gradient + vignetting), Poisson photons + read
     noise. ``n_stuck`` more spots are stuck to the coverslip (they move with the stage only).
 
-    Returns (frames, drift (n_frames x 2, px), mean displacement of the moving particles (n_frames x 2, px))."""
+    Returns (frames, drift (n_frames x 2, px), mean displacement of all particles, the stuck ones at 0
+    (n_frames x 2, px))."""
     H, W = shape
     yy, xx = np.mgrid[:H, :W]
     illum = (1 + 0.3 * xx / W) * (1 - 0.3 * ((xx - W / 2) ** 2 + (yy - H / 2) ** 2) / (W * W / 2))
@@ -48,7 +49,7 @@ def movie(n_frames, step_px, rng, n=50, jump_at=None, jump=(6.3, -4.7), n_stuck=
         if k:
             px += rng.normal(0, step_px, n)
             py += rng.normal(0, step_px, n)
-        mean.append([np.mean(px - xs), np.mean(py - ys)])
+        mean.append([np.sum(px - xs) / (n + n_stuck), np.sum(py - ys) / (n + n_stuck)])
         img = np.real(np.fft.ifft2(fourier_shift(spectrum(px, py, shape=shape) + stuck, d[k, 0], d[k, 1], shape=shape)))
         lam = np.clip((img + 30.0) * illum, 0, None)
         frames.append((rng.poisson(lam) + 100 + 1.5 * rng.normal(size=shape)).astype(np.float32))
