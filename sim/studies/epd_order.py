@@ -30,9 +30,15 @@ deposits of one a/lambda_D, with its t-test p-value (:func:`summarise`).
 Giera et al. found the order falling as Pe rises.  Their particles also
 attract by van der Waals (the DLVO primary minimum), so a hard push sticks
 them where they land.  Here the particles only repel (screened Coulomb and
-the contact spring), and the field's pressure compresses the deposit into a
-crystal: at 150 particles the order rises with Pe at a/lambda_D = 5 (0.79 at Pe 20,
-0.89 at Pe 180, 2 replicates each).
+the contact spring), and the layers on the mobile substrate stay ordered at
+every Pe (a/lambda_D = 5, Pe 540: 0.71 for the whole deposit, 0.40 for its
+interior).  At 600
+particles (``results/epd_order_n600``, 3 replicates) the order of the whole
+deposit is flat in Pe at a/lambda_D = 5 (p = 0.8) and falls at 10
+(-0.13 +- 0.03 per decade, p = 0.001), while the order of the interior
+(above the substrate layers, below the top) falls at both (-0.21 +- 0.07,
+p = 0.02; -0.44 +- 0.05, p < 1e-5): the Pe dependence is in the bulk of the
+deposit, and the whole-deposit number mixes it with the substrate layers.
 The order also keeps growing while the buried layers anneal after the last
 particle arrives (1500 particles, Pe 50: solid-like fraction 0.54 at 1.1 x
 the transport time, 0.87 at 2 x).  The observable is therefore the deposit
