@@ -122,7 +122,32 @@ def test_several_beads_averaged_and_bad_pages_named():
     assert max(cal.info["beads_per_page"]) == 3 and min(cal.info["beads_per_page"]) == 2
     # identical beads: no offset between them, and a z error estimate far below the step
     assert np.nanmax(np.abs(cal.info["bead_dz"])) < 0.3e-6
-    assert 0 < cal.info["z_error"] < 0.1e-6
+    assert 0 < cal.info["z_error_beads"] < 0.1e-6
+    assert cal.info["z_error"] >= cal.info["z_error_beads"]
+
+
+@pytest.mark.parametrize("n_beads", [1, 2])
+def test_z_error_estimate_against_truth(n_beads):
+    """Calibration.info["z_error"] predicts the z RMSE of particles measured on the calibration (truth known):
+    within 0.7-2x of it, for one bead (no spread between beads to go by) and for two (whose spread alone is
+    far below the measured error)."""
+    rng = np.random.default_rng(40 + n_beads)
+    z = np.arange(-6e-6, 6.0001e-6, 1e-6)
+    bx, by = [60.3, 180.6][:n_beads], [70.2, 150.7][:n_beads]
+    stack = np.stack([gaussian_frame((240, 240), bx, by, [zk] * n_beads, 2e4, 20.0, rng) for zk in z])
+    cal = build_calibration(stack, z, PX)
+    g = np.arange(3) * 70 + 50.0
+    errs = []
+    for _ in range(4):
+        xs, ys = (a.ravel() + rng.uniform(-3, 3, 9) for a in np.meshgrid(g, g))
+        zs = rng.uniform(-5.5e-6, 5.5e-6, 9)
+        df = locate_frame_3d(gaussian_frame((240, 240), xs, ys, zs, 2e4, 20.0, rng), cal)
+        errs.extend(_score(df, xs, ys, zs)[1])
+    assert len(errs) >= 30
+    rmse = float(np.sqrt(np.mean(np.square(errs))))
+    assert 0.7 * rmse <= cal.info["z_error"] <= 2.0 * rmse, (cal.info["z_error"], rmse)
+    if n_beads == 2:
+        assert cal.info["z_error_beads"] < 0.7 * rmse
 
 
 def test_heights_beside_in_metadata_and_implausible(tmp_path):
