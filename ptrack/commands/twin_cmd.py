@@ -19,10 +19,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import re
 
-from ..errors import UserError, atomic_output, check_positive
+from ..errors import atomic_output
 from .track import add_track_arguments, track_kwargs
 
 
@@ -80,16 +79,7 @@ def run(args) -> int:
     from ..compare import format_table, to_json
     from ..twin import run_twin
 
-    check_positive("--temperature", args.temperature)
-    check_positive("--viscosity", args.viscosity)
-    for name in ("radius", "density", "height", "debye_length", "na", "wavelength", "pixel_pitch", "qe"):
-        v = getattr(args, name)
-        if v is not None:
-            check_positive(f"--{name.replace('_', '-')}", v)
-    if args.field is not None and (not math.isfinite(args.field) or args.field == 0):
-        raise UserError(f"--field {args.field} must be a finite non-zero E_z", "give E_z in V/m")
-    if not 0 <= args.calibrate <= 5:
-        raise UserError(f"--calibrate {args.calibrate} is outside 0..5", "give 0 (none), 1 or 2 rounds")
+    # every numeric option was checked against its range by ptrack.cli (ptrack.options, the one table)
     kw = track_kwargs(args)
     optics = {"na": args.na, "wavelength": args.wavelength, "medium_index": args.medium_index,
               "astigmatism": args.astigmatism}

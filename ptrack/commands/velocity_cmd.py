@@ -79,11 +79,7 @@ def run(args) -> int:
     from ..motion.tracks import axis_components, resolve_motion_blur
 
     # the numeric options (--motion-blur, --bins, --min-frames, --n-boot, --reference, --contact-tolerance...)
-    # were checked against their ranges by ptrack.cli (ptrack.options, the one table). The one copy left:
-    # tests/test_velocity.py calls run() without ptrack.cli and expects this message (to go with that test)
-    if args.min_frames < V.MIN_FRAMES:
-        raise UserError(f"--min-frames = {args.min_frames} is below {V.MIN_FRAMES}",
-                        f"a velocity with a standard error needs at least {V.MIN_FRAMES} positions")
+    # were checked against their ranges by ptrack.cli (ptrack.options, the one table)
     traj = Path(args.traj)
     # outputs go where the user points, else into the working folder (never beside the input)
     report = Path(args.report) if args.report else Path.cwd()
