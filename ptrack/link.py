@@ -28,11 +28,16 @@ def nearest_neighbour_distance(features: pd.DataFrame, n_frames: int = 10) -> fl
     """Median distance (px) from each localisation to its nearest neighbour in the same frame (inf if alone)."""
     from scipy.spatial import cKDTree
 
-    frames = np.unique(features["frame"].to_numpy())
+    # numpy only: a per-frame .loc on the table costs ~50 ms a frame once it holds string/categorical columns
+    fr = features["frame"].to_numpy()
+    x = features["x_px"].to_numpy(float)
+    y = features["y_px"].to_numpy(float)
+    frames = np.unique(fr)
     frames = frames[np.linspace(0, len(frames) - 1, min(n_frames, len(frames))).astype(int)] if len(frames) else frames
     d = []
     for f in frames:
-        pts = features.loc[features["frame"] == f, ["x_px", "y_px"]].to_numpy()
+        m = fr == f
+        pts = np.c_[x[m], y[m]]
         if len(pts) > 1:
             dd, _ = cKDTree(pts).query(pts, k=2)
             d.append(dd[:, 1])
@@ -40,15 +45,79 @@ def nearest_neighbour_distance(features: pd.DataFrame, n_frames: int = 10) -> fl
 
 
 def _trackpy_link(features, search_range, memory, pos_columns):
+    """trackpy.link on a minimal copy (frame + positions) with the garbage collector paused.
+
+    Returns the ``particle`` ids (int64), aligned with ``features``' rows. trackpy
+    allocates many small objects per frame, and Python's cyclic collector then
+    scans them again and again (measured: passes of 19 ms spiking to 125 ms);
+    it is paused for the call and restored after. trackpy copies the table it
+    is given, so it gets only the columns it needs.
+    """
+    import gc
+
     import trackpy
 
     trackpy.quiet()
+    cols = ["frame", *pos_columns]
+    small = pd.DataFrame({c: features[c].to_numpy() for c in cols})
+    was = gc.isenabled()
+    gc.disable()
     try:
-        return trackpy.link(features, search_range, memory=memory, pos_columns=list(pos_columns), t_column="frame",
-                            adaptive_stop=0.3, adaptive_step=0.8)
+        out = trackpy.link(small, search_range, memory=memory, pos_columns=list(pos_columns), t_column="frame",
+                           adaptive_stop=0.3, adaptive_step=0.8)
     except Exception as exc:  # SubnetOversize etc.
         raise UserError(f"linking failed with search range {search_range}: {type(exc).__name__}: {exc}",
                         "give a smaller --search-range (px) or reduce the particle density") from None
+    finally:
+        if was:
+            gc.enable()
+    # trackpy keeps the index of the table it was given (0..n-1 here), possibly reordered
+    pid = np.empty(len(small), np.int64)
+    pid[out.index.to_numpy()] = out["particle"].to_numpy(np.int64)
+    return pid
+
+
+def _robust_step(d):
+    """Range statistic of per-axis steps (px): 5 robust standard deviations, or 1.5x the 99th percentile of
+    |step| when a minority moves much more than the rest (stuck and drifting particles in one movie)."""
+    return max(5.0 * 1.4826 * np.median(np.abs(d - np.median(d))), 1.5 * np.percentile(np.abs(d), 99))
+
+
+def _nn_steps(frames, x, y, max_pairs: int = 20000):
+    """Per-axis steps (px) of mutual nearest neighbours between consecutive frames: a first look at the
+    step distribution without a search range (no link); empty when there are too few."""
+    from scipy.spatial import cKDTree
+
+    order = np.argsort(frames, kind="stable")
+    fs, xs, ys = frames[order], x[order], y[order]
+    ufr, start = np.unique(fs, return_index=True)
+    end = np.r_[start[1:], len(fs)]
+    dx, dy = [], []
+    n = 0
+    for k in range(len(ufr) - 1):
+        if ufr[k + 1] != ufr[k] + 1:
+            continue
+        a = np.c_[xs[start[k]:end[k]], ys[start[k]:end[k]]]
+        b = np.c_[xs[start[k + 1]:end[k + 1]], ys[start[k + 1]:end[k + 1]]]
+        if len(a) < 1 or len(b) < 1:
+            continue
+        _, ia = cKDTree(b).query(a)
+        _, ib = cKDTree(a).query(b)
+        mutual = ib[ia] == np.arange(len(a))
+        dx.append(b[ia[mutual], 0] - a[mutual, 0])
+        dy.append(b[ia[mutual], 1] - a[mutual, 1])
+        n += int(mutual.sum())
+        if n >= max_pairs:
+            break
+    if n < 10:
+        return np.zeros(0), np.zeros(0)
+    return np.concatenate(dx), np.concatenate(dy)
+
+
+#: Frames (from the start) on which the search range is estimated before the whole movie is linked once
+#: (at least; more when they hold fewer than RANGE_MIN_FEATURES localisations)
+RANGE_FRAMES = 20
+RANGE_MIN_FEATURES = 2000
 
 
 def link(features: pd.DataFrame, search_range: float | None = None, memory: int = 3, pixel_size: float | None = None,
@@ -79,7 +148,8 @@ def link(features: pd.DataFrame, search_range: float | None = None, memory: int 
         out = features.assign(particle=np.zeros(0, np.int64))
         out.attrs["link"] = {"search_range_px": search_range}
         return out
-    feats = features.reset_index(drop=True).copy()
+    # in frame order (as trackpy returns it), ties in their given order
+    feats = features.sort_values("frame", kind="stable").reset_index(drop=True)
     three_d = "z" in feats.columns and np.isfinite(feats["z"].to_numpy()).any()
     if three_d:
         if pixel_size is None:
@@ -93,29 +163,47 @@ def link(features: pd.DataFrame, search_range: float | None = None, memory: int 
     # the subnetworks that would otherwise be too large.
     cap = 80.0
     sr = float(search_range) if search_range is not None else min(max(0.45 * nn, 5.0), 50.0)
+    if search_range is None:
+        # first range from the steps of mutual nearest neighbours between consecutive frames (no range
+        # needed): the refinement below then usually confirms it after one link instead of growing it
+        # over several
+        ndx, ndy = _nn_steps(feats["frame"].to_numpy(), feats["x_px"].to_numpy(float), feats["y_px"].to_numpy(float))
+        if len(ndx):
+            sr = float(np.clip(max(_robust_step(ndx), _robust_step(ndy)) + 1.0, 3.0, cap))
     pos = ["y_px", "x_px"]
     rng_ = (sr, sr)
     if three_d:
         zsr = z_search_range / pixel_size if z_search_range is not None else max(4.0 * sr, 1.0)
         pos = ["z_px", "y_px", "x_px"]
         rng_ = (zsr, sr, sr)
-    linked = _trackpy_link(feats, rng_, memory, pos)
+    # the search range is estimated on the first RANGE_FRAMES frames (more when they hold few
+    # localisations), then the whole movie is linked once with it
+    fr = feats["frame"].to_numpy()
+    ufr = np.unique(fr)
+    estimate = search_range is None or (three_d and z_search_range is None)
+    if estimate and len(ufr) > RANGE_FRAMES:
+        counts = np.cumsum(np.bincount(np.searchsorted(ufr, fr), minlength=len(ufr)))
+        n_est = max(RANGE_FRAMES, int(np.searchsorted(counts, RANGE_MIN_FEATURES)) + 1)
+        sample = feats[fr <= ufr[min(n_est, len(ufr)) - 1]] if n_est < len(ufr) else feats
+    else:
+        sample = feats
+    pid = _trackpy_link(sample, rng_, memory, pos)
     # refine (a few rounds): 5 robust standard deviations of the measured steps per axis, +1 px
-    # for localisation error, capped by the nearest-neighbour distance; a range cut short by
-    # the first guess under-estimates the steps, so repeat until the range stops growing.
+    # for localisation error; a range cut short by the first guess under-estimates the steps, so
+    # repeat until the range stops growing.
     for _ in range(4):
-        if search_range is not None and (not three_d or z_search_range is not None):
+        if not estimate:
             break
-        lk = linked.sort_values(["particle", "frame"])
-        same = lk["particle"].to_numpy()[1:] == lk["particle"].to_numpy()[:-1]
-        step = (lk["frame"].to_numpy()[1:] - lk["frame"].to_numpy()[:-1])[same]
+        order = np.lexsort((sample["frame"].to_numpy(), pid))
+        p_s = pid[order]
+        f_s = sample["frame"].to_numpy()[order]
+        same = p_s[1:] == p_s[:-1]
+        step = (f_s[1:] - f_s[:-1])[same]
         if same.sum() < 10:
             break
+
         def robust(col):
-            # 5 robust sigmas of the steps, or 1.5x their 99th percentile when a minority moves much
-            # more than the rest (stuck and drifting particles in one movie)
-            d = np.diff(lk[col].to_numpy())[same] / np.sqrt(step)
-            return max(5.0 * 1.4826 * np.median(np.abs(d - np.median(d))), 1.5 * np.percentile(np.abs(d), 99))
+            return _robust_step(np.diff(sample[col].to_numpy()[order])[same] / np.sqrt(step))
         s = max(robust("x_px"), robust("y_px"))
         new_sr = float(np.clip(s + 1.0, 3.0, cap)) if search_range is None else sr
         new_rng = (new_sr, new_sr)
@@ -124,11 +212,13 @@ def link(features: pd.DataFrame, search_range: float | None = None, memory: int 
             new_rng = (zsr, new_sr, new_sr)
         if np.allclose(new_rng, rng_, rtol=0.05):
             break
-        linked = _trackpy_link(feats, new_rng, memory, pos)
+        pid = _trackpy_link(sample, new_rng, memory, pos)
         rng_ = new_rng
+    if len(sample) < len(feats):
+        pid = _trackpy_link(feats, rng_, memory, pos)
+    linked = feats
+    linked["particle"] = pid
     linked = linked.drop(columns=[c for c in ("z_px",) if c in linked.columns and c not in features.columns])
-    linked["particle"] = linked["particle"].astype(np.int64)
-    linked = linked.reset_index(drop=True)
     linked.attrs["link"] = {"search_range_px": float(rng_[-1]), "memory": int(memory)}
     if three_d:
         linked.attrs["link"]["z_search_range_m"] = float(rng_[0] * pixel_size)

@@ -28,6 +28,28 @@ _SQRT2 = math.sqrt(2.0)
 _SQRT2PI = math.sqrt(2.0 * math.pi)
 # convergence of the fits: the centre's last step below this (px)
 _XTOL = 1e-3
+# least-squares fits (brightfield) stop when the centre's last step is below this fraction of its standard
+# error, if that is more than _XTOL: the remaining error is <= ~0.1 standard errors (+0.5 % variance), and
+# halo images (not Gaussian) crawl for ~10 iterations below it
+_RTOL = 0.05
+
+
+@nb.njit(cache=True)
+def _ls_sd(J, rss, npix, npar, ia):
+    # least-squares standard error of parameter ia: sqrt(rss / (n - p) * (J^-1)_ii) with J the Gauss-Newton
+    # matrix (J is not changed); 0 when J is singular
+    P = J.shape[0]
+    e = np.zeros(P)
+    e[ia] = 1.0
+    A = J.copy()
+    for a in range(P):
+        A[a, a] += 1e-12
+    try:
+        col = np.linalg.solve(A, e)
+    except Exception:
+        return 0.0
+    v = col[ia] * rss / max(npix - npar, 1)
+    return math.sqrt(v) if v > 0 else 0.0
 
 
 @nb.njit(cache=True)
@@ -195,8 +217,9 @@ def _fit_one(img, r, c, half, sigma0, gain, offset, rvar, poisson, max_iter, out
             lam *= 10.0
         # converged when the centre moves by < _XTOL px: 1e-3 px is >= 20x below the bound of any spot we
         # localise (0.02-0.1 px), and brightfield images with halos (not Gaussian) crawl below it for ~10
-        # more iterations
-        if not improved or (abs(step[0]) < _XTOL and abs(step[1]) < _XTOL):
+        # more iterations; least squares stops at _RTOL of the centre's standard error when that is larger
+        tol = _XTOL if poisson else max(_XTOL, _RTOL * _ls_sd(J, -2.0 * f, nr * nc, 5, 0))
+        if not improved or (abs(step[0]) < tol and abs(step[1]) < tol):
             converged = True
             break
     # covariance: inverse Fisher information (Poisson), scaled by the residual variance (least squares)
@@ -405,8 +428,15 @@ def _fit_group(img, r0, r1, c0, c1, x0, y0, amp, sigma0, gain, offset, rvar, poi
                 break
             lam *= 10.0
         small = True
+        tol = _XTOL
+        if not poisson:
+            # least squares: at _RTOL of the standard error of the worst-determined centre, when larger
+            sdmin = 1e300
+            for k in range(K):
+                sdmin = min(sdmin, _ls_sd(J, -2.0 * f, nr * nc, P, 3 * k))
+            tol = max(_XTOL, _RTOL * sdmin)
         for k in range(K):
-            if abs(step[3 * k]) >= _XTOL or abs(step[3 * k + 1]) >= _XTOL:
+            if abs(step[3 * k]) >= tol or abs(step[3 * k + 1]) >= tol:
                 small = False
         if not improved or small:
             converged = True
