@@ -401,7 +401,9 @@ def _locate_multiscale(frame, snr=None, gain=1.0, offset=0.0, read_noise=0.0, br
     sym = blob_ok & (size >= LARGE_IMAGE)
     rest = np.nonzero(blob_ok & ~sym)[0]
     if len(rest):
-        sym[rest] = has_dip(sub, x[rest], y[rest], nzmap[rows[rest], cols[rest]], rmax_all[rest])
+        # a ring of the opposite sign lies within a few scales of a blob's centre
+        r_dip = np.minimum(rmax_all[rest], np.ceil(4.0 * scale[rest]) + 3)
+        sym[rest] = has_dip(sub, x[rest], y[rest], nzmap[rows[rest], cols[rest]], r_dip)
     q = np.nonzero(ring)[0]
     if len(q):
         half = np.maximum(4, np.ceil(3.0 * scale[q])).astype(np.int64)
