@@ -45,6 +45,7 @@ import pandas as pd
 
 from .constants import BOLTZMANN, STANDARD_GRAVITY, VACUUM_PERMITTIVITY
 from .errors import UserError, atomic_output, check_positive
+from .motion.tracks import motion_blur_from_data
 
 __all__ = ["infer_parameters", "measure_camera", "build_scene", "to_toml", "apply_overrides", "run_twin",
            "interpret"]
@@ -150,36 +151,16 @@ def twin_exposure(motion_blur: dict | None, frame_interval: float) -> tuple[floa
     return min(6 * mb["R"], 1.0) * frame_interval, min(float(mb["R"]), 1 / 6), 8     # R = (exposure / dt) / 6
 
 
-def _implied_motion_blur(table: pd.DataFrame, D: float, dt: float) -> dict | None:
-    """R = (cov(dx_n, dx_n+1) + sigma^2) / (2 D dt): the blur the data imply, given the localiser's sigma (2D).
-
-    For observed Brownian steps cov(dx_n, dx_n+1) = 2 R D dt - sigma^2 (Vestergaard et al. 2014), so with
-    sigma from the localiser (columns sigma_x, sigma_y) R follows; the error is a bootstrap over particles.
-    """
-    if not {"sigma_x", "sigma_y"} <= set(table.columns) or not D > 0:
+def _implied_motion_blur(table: pd.DataFrame) -> dict | None:
+    """The blur the data imply, given the localiser's sigma (2D): :func:`ptrack.motion.tracks.motion_blur_from_data`
+    (the one rule), its error a bootstrap over particles; None without the localiser's sigma_x, sigma_y."""
+    if not {"sigma_x", "sigma_y"} <= set(table.columns):
         return None
-    df = table.sort_values(["particle", "frame"])
-    p = df["particle"].to_numpy()
-    f = df["frame"].to_numpy()
-    prods, s2 = [], []
-    for c in ("x", "y"):
-        v = df[c].to_numpy(float)
-        d = np.diff(v)
-        ok = (p[1:] == p[:-1]) & (np.diff(f) == 1)
-        pair = ok[1:] & ok[:-1]
-        prod = np.where(pair, d[1:] * d[:-1], np.nan)
-        prods.append(pd.Series(prod).groupby(p[1:-1]).agg(["sum", "count"]))
-        s2.append(pd.Series(df[f"sigma_{c}"].to_numpy(float) ** 2).groupby(p).mean())
-    S = prods[0]["sum"].to_numpy() + prods[1]["sum"].to_numpy()
-    N = prods[0]["count"].to_numpy() + prods[1]["count"].to_numpy()
-    sig2 = float(np.nanmean(np.r_[s2[0].to_numpy(), s2[1].to_numpy()]))
-    if N.sum() < 20:
+    R, R_err = motion_blur_from_data(table, n_boot=300, seed=0)
+    if R is None:
         return None
-    R = (S.sum() / N.sum() + sig2) / (2 * D * dt)
-    rng = np.random.default_rng(0)
-    W = rng.multinomial(len(S), np.full(len(S), 1 / len(S)), size=300)
-    Rb = ((W @ S) / (W @ N) + sig2) / (2 * D * dt)
-    return {"R": float(R), "R_err": float(np.std(Rb, ddof=1)), "sigma_loc_m": math.sqrt(sig2),
+    sig2 = float(np.nanmean(np.r_[table["sigma_x"].to_numpy(float) ** 2, table["sigma_y"].to_numpy(float) ** 2]))
+    return {"R": float(R), "R_err": float(R_err), "sigma_loc_m": math.sqrt(sig2),
             "note": "R = 0: instantaneous exposure; 1/6: shutter open the whole frame"}
 
 
@@ -360,7 +341,7 @@ def infer_parameters(table: pd.DataFrame, temperature: float, viscosity: float, 
     mu = out["viscosity_Pa_s"]
     out["D_bulk_m2_s"] = D0
     out["D_stokes_einstein_m2_s"] = kT / (6 * math.pi * mu * R)
-    mb = _implied_motion_blur(table, D, msd.frame_interval(table))
+    mb = _implied_motion_blur(table)
     out["motion_blur"] = mb
     # drift
     try:

@@ -1,7 +1,8 @@
 """Defaults a new user meets (issue 13): units written µm, and the twin's camera exposure from the blur it measured.
 
 The other defaults of issue 13 have their guards beside the code they test:
-3D wall from the data (test_analysis::test_3d_wall_comes_from_the_data_not_the_focal_plane), R from the metadata
+3D wall from the data, corrected only when D falls with height as a wall makes it (test_analysis::
+test_3d_wall_comes_from_the_data_not_the_focal_plane, test_wall::test_analyze_corrects_for_a_wall_only_when_the_data_show_one), R from the metadata
 or the data (test_analysis, test_pipeline::test_cli_analyze_and_missing_calibration), the field-of-view
 correction on for camera tables (test_msd_cmd::test_msd_command_corrects_the_field_of_view_by_default_for_camera_tables),
 calib_z.csv found beside the stack (test_gdpt), outputs in the working folder (test_msd_cmd, test_velocity).
@@ -88,3 +89,47 @@ def test_no_analysis_module_switches_the_matplotlib_backend():
                     and isinstance(n.func.value, ast.Name) and n.func.value.id in ("matplotlib", "plt", "mpl")):
                 offenders.append(f"{p.relative_to(ROOT)}:{n.lineno}")
     assert not offenders, offenders
+
+
+def test_the_renderer_times_a_table_by_the_toolkits_frame_interval_rule():
+    """sim.render.movie.frame_interval_of is ptrack.motion.frame_interval (t first, not the metadata first); the
+    metadata value is kept only when t agrees with it, and 1 s only for a single frame without metadata."""
+    import warnings
+
+    import numpy as np
+
+    from ptrack.table import make_table
+    from sim.render.movie import frame_interval_of
+
+    fr = np.repeat(np.arange(5), 2)
+    t = make_table(fr, fr * 0.1, np.tile([0, 1], 5), np.zeros(10), np.zeros(10), meta={"frame_interval": 0.1})
+    assert frame_interval_of(t) == 0.1                      # the exact metadata value, not t's rounding
+    t.attrs["ptrack"]["frame_interval"] = 0.5               # metadata that contradicts t: t wins, with a warning
+    with pytest.warns(UserWarning, match="'t' column gives 0.1 s"):
+        assert frame_interval_of(t) == pytest.approx(0.1)
+    one = make_table([0], [0.0], [0], [0.0], [0.0])
+    one.attrs["ptrack"] = {}
+    with pytest.warns(UserWarning, match="single-frame"):
+        assert frame_interval_of(one) == 1.0
+    one.attrs["ptrack"] = {"frame_interval": 0.2}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert frame_interval_of(one) == 0.2
+
+
+def test_the_twin_takes_the_implied_blur_from_the_one_rule():
+    import numpy as np
+
+    from ptrack.motion import brownian_tracks
+    from ptrack.motion.tracks import motion_blur_from_data
+    from ptrack.table import make_table
+    from ptrack.twin import _implied_motion_blur
+
+    p = brownian_tracks(60, 80, 8.6e-13, 0.1, 30e-9, 0.1, n_dims=2, seed=5)
+    fr = np.tile(np.arange(80), 60)
+    df = make_table(fr, fr * 0.1, np.repeat(np.arange(60), 80), p[..., 0].ravel(), p[..., 1].ravel(),
+                    meta={"frame_interval": 0.1}, sigma_x=np.full(fr.size, 30e-9), sigma_y=np.full(fr.size, 30e-9))
+    mb = _implied_motion_blur(df)
+    R, err = motion_blur_from_data(df, n_boot=300, seed=0)
+    assert (mb["R"], mb["R_err"]) == (R, err) and abs(R - 0.1) < 3 * err
+    assert mb["sigma_loc_m"] == pytest.approx(30e-9)

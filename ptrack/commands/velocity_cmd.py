@@ -74,6 +74,7 @@ def _clean(v):
 
 def run(args) -> int:
     from .. import velocity as V
+    from ..motion.velocity import default_axes
     from ..table import read_table
 
     from ..motion.tracks import axis_components, resolve_motion_blur
@@ -105,7 +106,7 @@ def run(args) -> int:
             raise UserError(f"z is {z[0]:.6g} m in every row of {traj}: there is no motion along z to measure",
                             "give --axes without z (e.g. xy)")
     else:
-        axes = ("x", "y", "z") if len(z) and not z_flat else ("x", "y")
+        axes = default_axes(df)
     R, R_source = resolve_motion_blur(df, args.motion_blur)
     vel = V.particle_velocity(df, axes=axes, motion_blur=R, min_frames=args.min_frames, noise=args.noise)
     n_ok = int(np.isfinite(vel[f"v{axes[0]}"].to_numpy(float)).sum())

@@ -258,10 +258,11 @@ def resolve_motion_blur(df: pd.DataFrame, motion_blur=None) -> tuple[float, str]
     In this order: ``motion_blur`` if given; the table's metadata
     (``motion_blur``; 0 for simulated positions, ``source`` starting with
     "sim", which are instantaneous; or ``exposure`` / ``frame_interval`` / 6
-    for a uniform exposure); the data, when the table carries the localiser's precision
-    (``sigma_x``, ``sigma_y`` in m): the CVE's localisation variance
-    ``sigma^2 = R <dx^2> + (2R - 1) <dx_n dx_n+1>`` solved for R with that
-    sigma; else 1/6 (a shutter open the whole frame), said so.
+    for a uniform exposure); the metadata of the movie the table was tracked
+    from (``source``: :func:`movie_exposure_metadata`, e.g. the renderer's
+    ``params.json``); the data, when the table carries the localiser's
+    precision (``sigma_x``, ``sigma_y`` in m: :func:`motion_blur_from_data`);
+    else 1/6 (a shutter open the whole frame), said so.
 
     Returns
     -------
@@ -278,48 +279,168 @@ def resolve_motion_blur(df: pd.DataFrame, motion_blur=None) -> tuple[float, str]
     if motion_blur is not None:
         return check_motion_blur(motion_blur), "given"
     meta = df.attrs.get("ptrack", {}) or {}
-    if meta.get("motion_blur") is not None:
-        try:
-            return check_motion_blur(meta["motion_blur"]), "metadata: motion_blur"
-        except UserError:
-            pass
     src = str(meta.get("source", ""))
     if meta.get("kind") == "simulated" or (src.startswith("sim") and "render_movie" not in src):
         # simulated positions and the ground truth of rendered movies are sampled at instants
-        return 0.0, "metadata: simulated positions are instantaneous"
-    if meta.get("exposure") and meta.get("frame_interval"):
-        R = float(meta["exposure"]) / float(meta["frame_interval"]) / 6.0
-        if math.isfinite(R) and 0 <= R <= 1 / 6 + 1e-9:
-            return min(R, 1 / 6), "metadata: exposure / frame interval / 6"
-    R = _blur_from_sigma(df)
+        if not _number(meta.get("motion_blur")):
+            return 0.0, "metadata: simulated positions are instantaneous"
+    got = _blur_from_metadata(meta)
+    if got is not None:
+        return got[0], f"metadata: {got[1]}"
+    if src and meta.get("kind") != "simulated":
+        movie_meta = movie_exposure_metadata(src)
+        got = _blur_from_metadata(movie_meta) if movie_meta else None
+        if got is not None:
+            return got[0], f"movie metadata ({movie_meta['_file']}): {got[1]}"
+    R, _ = motion_blur_from_data(df)
     if R is not None:
         return R, "data: the localiser's sigma in the CVE's localisation variance"
     return 1 / 6, "default: R = 1/6 (shutter open the whole frame) assumed; give --motion-blur"
 
 
-def _blur_from_sigma(df: pd.DataFrame):
-    """R implied by the localiser's sigma_x, sigma_y and the pooled step moments (None if not possible)."""
+def _number(v) -> bool:
+    """True for a finite real number (not a bool, not text such as "none (short exposure)")."""
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _blur_from_metadata(meta: dict):
+    """(R, explanation) from metadata keys, or None: ``motion_blur`` (a number; text is ignored),
+    ``motion_blur_substeps`` = 0 of the renderer (positions drawn at an instant: R = 0), or ``exposure`` (s) /
+    ``frame_interval`` (s) / 6 for a uniform exposure."""
+    if not meta:
+        return None
+    if _number(meta.get("motion_blur")):
+        try:
+            return check_motion_blur(meta["motion_blur"]), "motion_blur"
+        except UserError:
+            pass
+    sub = meta.get("motion_blur_substeps")
+    if _number(sub) and int(sub) == 0 and str(meta.get("source", "")).startswith("sim.render"):
+        return 0.0, "rendered without motion blur (motion_blur_substeps = 0)"
+    exp, fi = meta.get("exposure"), meta.get("frame_interval")
+    if _number(exp) and _number(fi) and fi > 0 and exp >= 0:
+        R = float(exp) / float(fi) / 6.0
+        if R <= 1 / 6 + 1e-9:
+            return min(R, 1 / 6), f"exposure {float(exp):g} s / frame interval {float(fi):g} s / 6"
+    return None
+
+
+def movie_exposure_metadata(source) -> dict | None:
+    """Exposure metadata of the movie a table was tracked from (its ``source``), or None.
+
+    Read, in this order: ``params.json`` beside the movie (written by
+    :func:`sim.render.render_movie`: ``exposure``, ``frame_interval``,
+    ``motion_blur_substeps``, ``source``) and the JSON of the TIFF's ImageJ
+    ``Info`` property (``exposure``, ``motion_blur`` when a writer puts them
+    there). The first that holds exposure information is returned, with its
+    file name under ``"_file"``. Nothing is guessed: a movie without such
+    metadata gives None.
+    """
+    import json
+    from pathlib import Path
+
+    try:
+        p = Path(str(source))
+        if not p.exists():
+            return None
+        folder = p if p.is_dir() else p.parent
+        keys = ("motion_blur", "exposure", "motion_blur_substeps")
+        par = folder / "params.json"
+        if par.is_file():
+            with open(par) as fh:
+                d = json.load(fh)
+            mv = d.get("movie", "movie.tif")
+            if isinstance(d, dict) and any(k in d for k in keys) and (p.is_dir() or p.name == mv
+                                                                       or p.name == "movie.tif"):
+                return {**d, "_file": par.name}
+        if p.is_file() and p.suffix.lower() in (".tif", ".tiff"):
+            import tifffile
+
+            with tifffile.TiffFile(p) as tif:
+                info = (tif.imagej_metadata or {}).get("Info") if tif.is_imagej else None
+            if info:
+                d = json.loads(info)
+                if isinstance(d, dict) and any(k in d for k in keys):
+                    return {**d, "_file": p.name}
+    except (OSError, ValueError, TypeError):
+        return None
+    return None
+
+
+def motion_blur_from_data(df: pd.DataFrame, n_boot: int = 0, seed=0) -> tuple:
+    """The motion-blur parameter R the data imply, given the localiser's precision: the one rule.
+
+    For observed Brownian steps the CVE's moments are ``<dx^2> = 2 D dt (1 - 2R)
+    + 2 sigma^2`` and ``<dx_n dx_n+1> = 2 R D dt - sigma^2`` (Vestergaard et al.
+    2014), so with sigma from the localiser (columns ``sigma_x``, ``sigma_y``,
+    m) ``R = (sigma^2 + <dx_n dx_n+1>) / (<dx^2> + 2 <dx_n dx_n+1>)``, pooled
+    over x and y; the denominator is 2 D dt, so no D is needed.
+
+    Parameters
+    ----------
+    df : DataFrame
+        Trajectories table with ``sigma_x`` and/or ``sigma_y``.
+    n_boot : int
+        Bootstrap resamples over particles for the error (0: no error).
+    seed : int or Generator
+
+    Returns
+    -------
+    (R, R_err)
+        R clipped to [0, 1/6] (None when the table does not tell it: no
+        sigma columns, no consecutive steps); R_err the bootstrap standard
+        deviation of the unclipped R (NaN with ``n_boot=0``).
+
+    Examples
+    --------
+    >>> from ptrack.motion import brownian_field
+    >>> df = brownian_field(n_frames=60, size=30e-6, density=0.2e12, D=1e-12, dt=0.1, sigma=30e-9, seed=1)
+    >>> df["sigma_x"] = df["sigma_y"] = 30e-9
+    >>> R, err = motion_blur_from_data(df, n_boot=100)
+    >>> R < 3 * err            # instantaneous positions: R = 0 within its error
+    True
+    """
     comps = [c for c in ("x", "y") if f"sigma_{c}" in df.columns and c in df.columns]
     if len(comps) < 1 or not {"frame", "particle", "t"} <= set(df.columns):
-        return None
+        return None, None
     try:
         st = sort_tracks(df, comps)
     except UserError:
-        return None
-    num = den = 0.0
-    seg = np.repeat(np.arange(len(st.particles)), np.diff(st.off))
+        return None, None
+    P = len(st.particles)
+    seg = np.repeat(np.arange(P), np.diff(st.off))
+    step = (seg[1:] == seg[:-1]) & (np.diff(st.frames) == 1)
+    # per-particle sums: s2 (sum, count), d^2 (sum, count), d_n d_n+1 (sum, count), pooled over the components
+    sums = np.zeros((6, P))
     for j, c in enumerate(comps):
         v = st.vals[j]
-        s2 = df[f"sigma_{c}"].to_numpy(dtype=float)[st.order]
-        step = (seg[1:] == seg[:-1]) & (np.diff(st.frames) == 1)
+        s2 = df[f"sigma_{c}"].to_numpy(dtype=float)[st.order] ** 2
         d = np.where(step, np.diff(v), np.nan)
-        pair = np.isfinite(d[1:]) & np.isfinite(d[:-1])
-        if not np.isfinite(d).sum() or not pair.any() or not np.isfinite(s2).any():
-            return None
-        m2 = float(np.nanmean(d * d))
-        m11 = float(np.mean(d[1:][pair] * d[:-1][pair]))
-        num += float(np.nanmean(s2 * s2)) + m11
-        den += m2 + 2 * m11
-    if not den > 0:
-        return None
-    return float(np.clip(num / den, 0.0, 1 / 6))
+        prod = d[1:] * d[:-1]
+        for k, (x, g) in enumerate(((s2, seg), (d * d, seg[1:]), (prod, seg[1:-1]))):
+            ok = np.isfinite(x)
+            sums[2 * k] += np.bincount(g[ok], weights=x[ok], minlength=P)
+            sums[2 * k + 1] += np.bincount(g[ok], minlength=P)
+    tot = sums.sum(axis=1)
+    if tot[1] == 0 or tot[3] == 0 or tot[5] == 0:
+        return None, None
+
+    def r_of(t):
+        m2, m11 = t[2] / t[3], t[4] / t[5]
+        den = m2 + 2 * m11
+        return np.where(den > 0, (t[0] / t[1] + m11) / np.where(den > 0, den, 1.0), np.nan)
+
+    R = float(r_of(tot))
+    if not math.isfinite(R):
+        return None, None
+    err = math.nan
+    if int(n_boot) > 0 and P > 1:
+        rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+        W = rng.multinomial(P, np.full(P, 1 / P), size=int(n_boot)).astype(float)
+        tb = W @ sums.T                                  # (n_boot, 6)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            Rb = r_of(tb.T)
+        Rb = Rb[np.isfinite(Rb)]
+        if Rb.size > 1:
+            err = float(np.std(Rb, ddof=1))
+    return float(np.clip(R, 0.0, 1 / 6)), err

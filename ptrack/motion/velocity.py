@@ -283,15 +283,28 @@ def _velocity_kernel(vals, frames, off, dt, R, D_in, s2_in, min_obs, n_iter):
 # preparation
 # ---------------------------------------------------------------------------
 
-def _default_axes(df: pd.DataFrame) -> tuple:
+def default_axes(df: pd.DataFrame) -> tuple:
+    """The coordinate columns analysed when none are given: the one rule.
+
+    x, y and z when the table has finite heights that change; x and y for a 2D
+    table (z NaN) and for one whose z is the same in every row (no motion along
+    z to measure).
+
+    Examples
+    --------
+    >>> import pandas as pd
+    >>> default_axes(pd.DataFrame({"z": [1e-6, 1e-6]})), default_axes(pd.DataFrame({"z": [0.0, 1e-7]}))
+    (('x', 'y'), ('x', 'y', 'z'))
+    """
     z = df["z"].to_numpy(dtype=float) if "z" in df.columns else np.zeros(0)
-    return ("x", "y", "z") if np.isfinite(z).any() else ("x", "y")
+    z = z[np.isfinite(z)]
+    return ("x", "y", "z") if len(z) and float(z.max()) > float(z.min()) else ("x", "y")
 
 
 def _components(df: pd.DataFrame, axes) -> tuple:
     """Coordinate columns analysed: the components of ``axes`` (:func:`ptrack.motion.tracks.axis_components`),
     or x, y and (if the table has finite z) z."""
-    return _default_axes(df) if axes is None else axis_components(axes)
+    return default_axes(df) if axes is None else axis_components(axes)
 
 
 def _sorted_tracks(df: pd.DataFrame, comps):

@@ -36,7 +36,7 @@ import scipy.fft as sfft
 from numba import njit
 
 from ptrack.errors import UserError, atomic_output, check_positive, output_dir
-from ptrack.motion.tracks import check_coordinates
+from ptrack.motion.tracks import check_coordinates, frame_interval
 from ptrack.table import make_table, metadata, to_jsonable, validate, write_table
 
 from .camera import Camera, Workspace, expose
@@ -179,24 +179,21 @@ class _Renderer:
 
 
 def frame_interval_of(table: pd.DataFrame) -> float:
-    """Frame interval (s): table metadata ``frame_interval``, else from ``t`` and ``frame``.
+    """Frame interval (s) of a table to render: :func:`ptrack.motion.frame_interval`, the toolkit's one rule.
 
-    Raises UserError when several frames do not tell it (t not increasing); a single-frame table gets 1 s with a
-    warning."""
+    That rule reads ``t`` first (metadata ``frame_interval`` only for a single frame; a disagreement of more
+    than 1 % is warned about). When ``t`` and the metadata agree to 1e-9 the metadata value is returned, so the
+    number written into the movie is the exact one given, not ``t``'s rounding. Raises UserError when several
+    frames do not tell it (t not increasing); a single-frame table without metadata gets the TIFF's nominal
+    1 s, with a warning."""
     meta = metadata(table)
     fi = meta.get("frame_interval")
-    if fi:
-        return float(fi)
     f = table["frame"].to_numpy()
-    t = table["t"].to_numpy()
-    if f.size and f.max() > f.min():
-        i, j = int(np.argmin(f)), int(np.argmax(f))
-        dt = (t[j] - t[i]) / (f[j] - f[i])
-        if dt > 0 and math.isfinite(dt):
-            return float(dt)
-        raise UserError(f"the frame interval cannot be told from the table: t goes from {t[i]:g} to {t[j]:g} s over "
-                        f"frames {f[i]}..{f[j]}", "give times t (s) that increase with frame, or the table metadata "
-                        "frame_interval")
+    if (f.size and f.max() > f.min()) or fi:
+        dt = frame_interval(table)
+        if fi and math.isfinite(float(fi)) and abs(float(fi) / dt - 1) < 1e-9:
+            return float(fi)
+        return dt
     # one frame: no interval to tell; 1 s is only the TIFF's nominal one (said, not silent)
     import warnings
 
