@@ -11,9 +11,18 @@ Defaults that depend on the data, each recorded in the summary with its
 source:
 
 - the motion-blur parameter R (:func:`ptrack.motion.tracks.resolve_motion_blur`);
-- in 3D, the wall height: given, or the lowest heights the particles reach
-  (0.5 % quantile of z) minus the radius. A wall placed above particles
-  stops the correction with a message (``hindered["applied"] = False``).
+- in 3D, the wall correction: with ``wall_z`` given it is applied (the
+  user's word); else the wall is put at the lowest heights the particles
+  reach (0.5 % quantile of z) minus the radius and the correction is
+  applied only when the data show a hydrodynamic wall there: D parallel to
+  the wall falling with height as Brenner / Faxen predict
+  (:func:`ptrack.motion.wall.wall_evidence`, delta chi^2 >=
+  :data:`ptrack.motion.wall.WALL_EVIDENCE_DCHI2` against flat D). Otherwise
+  D is reported as measured, with a note (a sample confined by planes
+  without hydrodynamic hindrance, as the shipped 3D movie, is not
+  corrected). ``hindered["decision"]`` and ``hindered["evidence"]`` say
+  what and why. A wall placed above particles stops the correction with a
+  message (``hindered["applied"] = False``).
 
 Examples
 --------
@@ -180,8 +189,16 @@ def wall_from_data(table: pd.DataFrame, radius: float) -> float:
     return float(np.quantile(z, WALL_QUANTILE) - radius)
 
 
-def _hindered(per: pd.DataFrame, three_d: bool, radius: float, D: float, D_se: float, wall_z, height):
-    """The wall correction (dict) and a note when it is not applied."""
+def _hindered(per: pd.DataFrame, table: pd.DataFrame, three_d: bool, radius: float, D: float, D_err: float,
+              D_se: float, wall_z, height, seed: int = 0):
+    """The wall correction (dict) and a note when it is not applied.
+
+    3D: the correction is applied when the wall is given (``wall_z[1] == "given"``: the user's word) or when
+    the data show it (:func:`ptrack.motion.wall.wall_evidence`: D parallel to the wall falls with height as
+    Brenner / Faxen predict, delta chi^2 >= :data:`ptrack.motion.wall.WALL_EVIDENCE_DCHI2`); else D is
+    reported uncorrected and the note says why and how to force it. A wall above particles' mean heights
+    stops the correction either way.
+    """
     if three_d:
         h = per["z_mean"].to_numpy() - wall_z[0]
         below = np.isfinite(h) & (h < radius)
@@ -196,18 +213,37 @@ def _hindered(per: pd.DataFrame, three_d: bool, radius: float, D: float, D_se: f
         ratio = np.full(len(per), np.nan)
         ratio[ok] = wall.parallel_ratio(h[ok], radius)
         per["ratio_parallel"] = ratio
-        w = per["n_frames"].to_numpy() * ok
-        if w.sum() == 0:
+        if not ok.any():
             return None, None
-        mean_ratio = float(np.sum(np.nan_to_num(ratio) * w) / w.sum())
-        return {"applied": True, "wall_z_m": wall_z[0], "wall_z_source": wall_z[1],
-                "mean_height_m": float(np.sum(np.nan_to_num(h) * w) / w.sum()), "mean_ratio_parallel": mean_ratio,
-                "D_bulk_xy": D / mean_ratio, "D_SE_hindered_xy": D_se * mean_ratio,
-                "n_particles_below_contact": 0}, None
+        ev = wall.wall_evidence(table, radius, wall_z[0], seed=seed)
+        # the D over the tracks is D0 times the mean ratio over the points (heights) it was measured at
+        mean_ratio = ev["mean_ratio"] if ev else float(np.average(ratio[ok], weights=per["n_frames"].to_numpy()[ok]))
+        out = {"wall_z_m": wall_z[0], "wall_z_source": wall_z[1],
+               "mean_height_m": float(np.nanmean(table["z"].to_numpy(float)) - wall_z[0]),
+               "mean_ratio_parallel": mean_ratio, "n_particles_below_contact": 0, "evidence": ev}
+        corrected = {"D_bulk_xy": D / mean_ratio, "D_bulk_xy_err": D_err / mean_ratio,
+                     "D_SE_hindered_xy": D_se * mean_ratio}
+        if wall_z[1] == "given":
+            out.update(applied=True, decision="applied: the wall height was given (--wall-z)", **corrected)
+            return out, None
+        if ev is not None and ev["favours"] == "wall":
+            out.update(applied=True, decision=(f"applied: D parallel to the wall falls with height as a wall at "
+                                               f"z = {wall_z[0]:g} m predicts (delta chi2 = {ev['delta_chi2']:.1f} "
+                                               f">= {ev['threshold']:g})"), **corrected)
+            return out, None
+        why = ("too few points to test for a wall" if ev is None else
+               f"the data {'favour no wall' if ev['favours'] == 'no wall' else 'cannot tell'} (D_par vs height: "
+               f"delta chi2 = {ev['delta_chi2']:.1f}, a wall needs >= {ev['threshold']:g})")
+        note = (f"wall correction not applied: {why}; D is reported as measured. A wall at z = "
+                f"{wall_z[0] * 1e6:.3g} µm ({wall_z[1]}) would give D corrected to bulk = {D / mean_ratio * 1e12:.4f} "
+                "µm²/s; give --wall-z (m) to apply it")
+        out.update(applied=False, reason=note, decision=f"not applied: {why}",
+                   D_bulk_xy_if_applied=D / mean_ratio)
+        return out, note
     if height is not None:
         r = float(wall.parallel_ratio(height, radius))
-        return {"applied": True, "assumed_height_m": height, "ratio_parallel": r, "D_bulk_xy": D / r,
-                "D_SE_hindered_xy": D_se * r}, None
+        return {"applied": True, "decision": "applied: the height was given (--height)", "assumed_height_m": height,
+                "ratio_parallel": r, "D_bulk_xy": D / r, "D_bulk_xy_err": D_err / r, "D_SE_hindered_xy": D_se * r}, None
     return None, None
 
 
@@ -224,7 +260,9 @@ def analyze_table(table: pd.DataFrame, radius: float, viscosity: float, temperat
         m, Pa s, K.
     wall_z : float, optional
         z of the wall (m, 3D; the calibration's coordinates): heights are
-        ``z - wall_z``. Default: from the data (:func:`wall_from_data`).
+        ``z - wall_z``; the correction is then applied. Default: from the
+        data (:func:`wall_from_data`), the correction applied only when the
+        data show the wall (see the module docstring).
     height : float, optional
         Assumed centre height above the wall (m) for 2D data.
     subtract_drift : bool
@@ -278,15 +316,16 @@ def analyze_table(table: pd.DataFrame, radius: float, viscosity: float, temperat
     if three_d:
         wz = (p["wall_z"], "given") if "wall_z" in p else (
             wall_from_data(table, radius), f"from the data: the {100 * WALL_QUANTILE:g} % quantile of z minus the radius")
-    hind, note = _hindered(per, three_d, radius, D_best["xy"], D_se, wz, p.get("height"))
+    hind, note = _hindered(per, table, three_d, radius, D_best["xy"], err_best["xy"], D_se, wz, p.get("height"),
+                           seed=seed)
     if note:
         notes.append(note)
     summary["hindered"] = hind
     # the common drift (EPD: electrophoretic or sedimentation drift), per particle by GLS, then the ensemble
-    from .motion.velocity import ensemble_velocity, particle_velocity
+    from .motion.velocity import default_axes, ensemble_velocity, particle_velocity
 
     try:
-        ens = ensemble_velocity(particle_velocity(table, axes="xyz" if three_d else "xy", motion_blur=R), seed=seed)
+        ens = ensemble_velocity(particle_velocity(table, axes=default_axes(table), motion_blur=R), seed=seed)
         summary["drift_velocity"] = {r.axis: {"v": float(r.v), "v_err": float(r.v_err), "chi2_dof": float(r.chi2_dof)}
                                      for r in ens.itertuples()}
         summary["units"]["drift_velocity"] = "m/s"

@@ -28,10 +28,36 @@ def _table_3d(z_low=-2.5e-6, z_high=2.5e-6, n_p=30, n_f=60, seed=4):
 def test_3d_wall_comes_from_the_data_not_the_focal_plane():
     a = analyze_table(_table_3d(), RADIUS, 1e-3, 293.15, motion_blur=0.0, n_boot=0)
     h = a.summary["hindered"]
-    assert h["applied"] and h["wall_z_source"].startswith("from the data")
+    assert h["wall_z_source"].startswith("from the data")
     # lowest centre heights (-2.5 um) minus the radius: the wall, to within the 0.5 % quantile's resolution
     assert h["wall_z_m"] == pytest.approx(-2.5e-6 - RADIUS, abs=0.15e-6)
     assert h["n_particles_below_contact"] == 0 and 0 < h["mean_ratio_parallel"] < 1
+    # D is the same at every height here (no hydrodynamic wall): the data say so and D is not "corrected"
+    assert h["applied"] is False and h["evidence"]["favours"] == "no wall" and "D_bulk_xy" not in h
+    assert h["D_bulk_xy_if_applied"] > a.summary["D"]["xy"]
+    assert any("wall correction not applied" in n and "--wall-z" in n for n in a.notes)
+
+
+def test_shipped_3d_truth_is_not_wall_corrected_and_gives_the_free_D():
+    """diffusion3d: free diffusion between reflecting planes at +-2.5 um (sim.render.datasets), no hydrodynamic wall.
+
+    The old default put a wall at the lowest heights and reported D 10 % above the rendered free D."""
+    import json as _json
+    from pathlib import Path
+
+    from ptrack.table import read_table
+
+    root = Path(__file__).resolve().parents[1] / "data" / "synthetic" / "diffusion3d"
+    truth = read_table(root / "truth.parquet")
+    truth = truth[truth["in_frame"]].copy()
+    rng = np.random.default_rng(0)
+    for c, s in (("x", 20e-9), ("y", 20e-9), ("z", 60e-9)):     # the movie's localisation errors
+        truth[c] = truth[c] + s * rng.standard_normal(len(truth))
+    D_true = _json.loads((root / "params.json").read_text())["D_true"]
+    s = analyze_table(truth, RADIUS, 1e-3, 293.15, n_boot=100).summary
+    h = s["hindered"]
+    assert h["applied"] is False and h["evidence"]["favours"] != "wall"
+    assert abs(s["D"]["xy"] - D_true) < 2 * s["D_err"]["xy"]
 
 
 def test_particles_below_a_given_wall_stop_the_correction_with_a_message():
@@ -55,7 +81,8 @@ def test_motion_blur_from_the_data_when_the_table_has_the_localisers_sigma(R):
     # given beats data; metadata beats data; nothing at all: 1/6, said
     assert resolve_motion_blur(df, 0.1) == (0.1, "given")
     df.attrs["ptrack"]["exposure"] = 0.05
-    assert resolve_motion_blur(df) == (pytest.approx(0.05 / DT / 6), "metadata: exposure / frame interval / 6")
+    got, source = resolve_motion_blur(df)
+    assert got == pytest.approx(0.05 / DT / 6) and source.startswith("metadata: exposure 0.05 s / frame interval")
     bare = df.drop(columns=["sigma_x", "sigma_y"])
     bare.attrs = {}
     assert resolve_motion_blur(bare)[1].startswith("default")
@@ -138,3 +165,50 @@ def test_interrupted_report_leaves_no_half_report(tmp_path, monkeypatch):
     monkeypatch.undo()
     write_report(a, rep)
     assert (rep / "trajectories.parquet").read_bytes() == b"table" and (rep / "msd.png").exists()
+
+
+def test_motion_blur_of_a_rendered_movie_comes_from_its_params_json(tmp_path):
+    """GDPT tables have no sigma_x/sigma_y: R comes from the movie's metadata, not the 1/6 default. The renderer's
+    params.json holds exposure (s) and motion_blur_substeps (0: positions drawn at an instant, R = 0); the old text
+    key "motion_blur": "none (short exposure)" is read as no number, not as an error."""
+    movie = tmp_path / "movie.tif"
+    movie.write_bytes(b"")
+    params = {"source": "sim.render.render_movie", "exposure": 0.1, "frame_interval": 0.1, "motion_blur_substeps": 0,
+              "motion_blur": "none (short exposure)"}
+    (tmp_path / "params.json").write_text(json.dumps(params))
+    df = _table_3d()
+    df.attrs["ptrack"] = {"source": str(movie), "kind": "measured", "frame_interval": DT}
+    R, source = resolve_motion_blur(df)
+    assert R == 0.0 and source.startswith("movie metadata (params.json): rendered without motion blur")
+    params["motion_blur_substeps"] = 8                 # blurred over an exposure of half the frame: R = 0.5 / 6
+    params["exposure"] = 0.05
+    (tmp_path / "params.json").write_text(json.dumps(params))
+    assert resolve_motion_blur(df)[0] == pytest.approx(0.05 / 0.1 / 6)
+    (tmp_path / "params.json").unlink()                # no metadata, no sigma columns: the default, said
+    assert resolve_motion_blur(df)[1].startswith("default")
+
+
+def test_motion_blur_from_data_is_the_one_rule_with_a_bootstrap_error():
+    from ptrack.motion.tracks import motion_blur_from_data
+
+    sigma = 30e-9
+    for R_true in (0.0, 0.1):
+        p = brownian_tracks(80, 100, D0, DT, sigma, R_true, n_dims=2, seed=11)
+        fr = np.tile(np.arange(100), 80)
+        df = make_table(fr, fr * DT, np.repeat(np.arange(80), 100), p[..., 0].ravel(), p[..., 1].ravel(),
+                        meta={"frame_interval": DT}, sigma_x=np.full(fr.size, sigma), sigma_y=np.full(fr.size, sigma))
+        R, err = motion_blur_from_data(df, n_boot=200, seed=1)
+        assert 0 < err < 0.02 and abs(R - R_true) < 3 * err + 1e-3
+        assert motion_blur_from_data(df)[1] != motion_blur_from_data(df)[1]      # NaN: no resamples, no error
+    assert motion_blur_from_data(df.drop(columns=["sigma_x", "sigma_y"])) == (None, None)
+
+
+def test_default_axes_one_rule_for_velocity_and_analysis():
+    from ptrack.motion.velocity import default_axes
+
+    t = _table_3d()
+    assert default_axes(t) == ("x", "y", "z")
+    t["z"] = 1e-6                               # heights given but the same everywhere: no motion along z
+    assert default_axes(t) == ("x", "y")
+    t["z"] = np.nan
+    assert default_axes(t) == ("x", "y")

@@ -324,3 +324,95 @@ def test_cli_errors(capsys, tmp_path):
     assert main(["wall", "--radius", "250e-9", "--ratio", "1.2"]) == 2
     err = capsys.readouterr().err           # the CLI's central range check (ptrack.options) or the command's
     assert "--ratio" in err and "1.2" in err and err.startswith("error:")
+
+
+# --------------------------------------------------------------------------
+# does the data show a hydrodynamic wall? (ptrack.motion.wall.wall_evidence, the 3D analyze default)
+# --------------------------------------------------------------------------
+def _walk_near_wall(hydro, n=120, n_frames=100, dt=0.05, a=0.5e-6, z_top=3.0e-6, sub=10, seed=3,
+                    sigma_xy=20e-9, sigma_z=30e-9):
+    """Brownian dynamics over a plane wall at z = 0 (reflecting at 1.01 a, and at z_top).
+
+    ``hydro``: D_par = D0 parallel_ratio(h), D_z = D0 perpendicular_ratio(h) with the kT dM/dz drift
+    (Ito), the hindered diffusion of a real wall; else D = D0 everywhere (a reflecting plane, no
+    hydrodynamics). Returns the table (with localisation noise) and D0.
+    """
+    from ptrack.motion import wall as W
+    from ptrack.motion.stokes import stokes_einstein
+    from ptrack.table import make_table
+
+    rng = np.random.default_rng(seed)
+    D0 = float(stokes_einstein(a, 1e-3, 293.15))
+    lo = 1.01 * a
+    z = rng.uniform(lo, z_top, n)
+    x = rng.uniform(0, 50e-6, n)
+    y = rng.uniform(0, 50e-6, n)
+    h = dt / sub
+    out = np.empty((n_frames, n, 3))
+    for f in range(n_frames):
+        out[f] = np.c_[x, y, z]
+        for _ in range(sub):
+            if hydro:
+                rp = W.parallel_ratio(z, a)
+                rz = W.perpendicular_ratio(z, a, method="brenner_table")
+                drift = D0 * W.perpendicular_ratio_derivative(z, a, method="brenner_table") * h
+            else:
+                rp = rz = 1.0
+                drift = 0.0
+            x = x + np.sqrt(2 * D0 * rp * h) * rng.standard_normal(n)
+            y = y + np.sqrt(2 * D0 * rp * h) * rng.standard_normal(n)
+            z = z + drift + np.sqrt(2 * D0 * rz * h) * rng.standard_normal(n)
+            z = np.where(z < lo, 2 * lo - z, z)
+            z = np.where(z > z_top, 2 * z_top - z, z)
+    fr = np.repeat(np.arange(n_frames), n)
+    noise = rng.standard_normal((3, out[..., 0].size))
+    df = make_table(fr, fr * dt, np.tile(np.arange(n), n_frames), out[..., 0].ravel() + sigma_xy * noise[0],
+                    out[..., 1].ravel() + sigma_xy * noise[1], out[..., 2].ravel() + sigma_z * noise[2],
+                    meta={"frame_interval": dt, "kind": "simulated"})
+    return df, D0
+
+
+@pytest.fixture(scope="module")
+def hindered_walk():
+    return _walk_near_wall(hydro=True)
+
+
+@pytest.fixture(scope="module")
+def reflecting_walk():
+    return _walk_near_wall(hydro=False)
+
+
+def test_wall_evidence_tells_a_hydrodynamic_wall_from_a_reflecting_plane(hindered_walk, reflecting_walk):
+    from ptrack.motion.wall import WALL_EVIDENCE_DCHI2, wall_evidence
+
+    a = 0.5e-6
+    ev = wall_evidence(hindered_walk[0], a, 0.0)
+    assert ev["favours"] == "wall" and ev["delta_chi2"] >= WALL_EVIDENCE_DCHI2
+    # the wall model fits (chi2 near its dof), and its D0 is the bulk D within 3 errors
+    assert ev["chi2_wall"] < ev["dof"] + 4 * np.sqrt(2 * ev["dof"])
+    assert abs(ev["D0_wall"] - hindered_walk[1]) < 3 * ev["D0_wall_err"]
+    assert ev["bins"][0]["D"] < 0.8 * ev["bins"][-1]["D"]          # D falls towards the wall
+    ev = wall_evidence(reflecting_walk[0], a, 0.0)
+    assert ev["favours"] == "no wall" and ev["delta_chi2"] <= -WALL_EVIDENCE_DCHI2
+    assert abs(ev["D0_flat"] - reflecting_walk[1]) < 3 * ev["D0_flat_err"]
+
+
+def test_analyze_corrects_for_a_wall_only_when_the_data_show_one(hindered_walk, reflecting_walk):
+    from ptrack.analysis import analyze_table
+
+    a = 0.5e-6
+    df, D0 = hindered_walk
+    s = analyze_table(df, a, 1e-3, 293.15, n_boot=50).summary
+    h = s["hindered"]
+    assert h["applied"] and h["decision"].startswith("applied: D parallel") and h["evidence"]["favours"] == "wall"
+    assert s["D"]["xy"] < 0.9 * D0                                   # measured: hindered
+    assert abs(h["D_bulk_xy"] - D0) < 2.5 * h["D_bulk_xy_err"]       # corrected: the bulk D within its error
+    df, D0 = reflecting_walk
+    an = analyze_table(df, a, 1e-3, 293.15, n_boot=50)
+    h = an.summary["hindered"]
+    assert h["applied"] is False and h["evidence"]["favours"] == "no wall" and "D_bulk_xy" not in h
+    assert any("wall correction not applied" in n and "--wall-z" in n for n in an.notes)
+    assert abs(an.summary["D"]["xy"] - D0) < 2.5 * an.summary["D_err"]["xy"]
+    # the user's wall is the user's word: applied, with the evidence against it still reported
+    h = analyze_table(df, a, 1e-3, 293.15, wall_z=0.0, n_boot=0).summary["hindered"]
+    assert h["applied"] and h["wall_z_source"] == "given" and h["evidence"]["favours"] == "no wall"

@@ -26,8 +26,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--viscosity", metavar="MU", type=float, required=True, help="fluid viscosity (Pa s)")
     g.add_argument("--temperature", metavar="T", type=float, required=True, help="temperature (K)")
     g.add_argument("--wall-z", metavar="Z", type=float, default=None,
-                   help="z of the wall in calibration coordinates (m, 3D); default: the lowest heights the particles "
-                        "reach minus the radius (said in the output)")
+                   help="z of the wall in calibration coordinates (m, 3D): the near-wall correction is then applied. "
+                        "Default: the wall at the lowest heights the particles reach minus the radius, and the "
+                        "correction applied only if D parallel to the wall falls with height as that wall makes it "
+                        "(delta chi2 >= 6 against a flat D); else D is reported as measured, said in the output")
     g.add_argument("--height", metavar="H", type=float, help="assumed centre height above the wall (m, 2D)")
     g.add_argument("--subtract-drift", action="store_true", help="remove the ensemble drift before estimating D")
     g.add_argument("--estimator", choices=("cve", "ols"), default="cve", help="D estimator (default cve)")
@@ -79,12 +81,20 @@ def print_summary(s: dict) -> None:
         print("drift velocity (µm/s): " + "  ".join(f"v_{a} = {v['v'] * 1e6:+.3f} ± {v['v_err'] * 1e6:.3f}"
                                                    for a, v in s["drift_velocity"].items()))
     h = s.get("hindered")
+    ev = (h or {}).get("evidence")
+    if ev:
+        print(f"wall test (D parallel to the wall vs height, {ev['n_points']} points in {len(ev['bins'])} height bins): "
+              f"chi2 {ev['chi2_flat']:.1f} flat, {ev['chi2_wall']:.1f} with a wall at z = {ev['wall_z_m'] * 1e6:.3g} µm "
+              f"({ev['dof']} dof); delta chi2 = {ev['delta_chi2']:+.1f} (a wall needs >= {ev['threshold']:g}): "
+              f"{ev['favours']}")
+    if h and h.get("decision"):
+        print(f"wall correction {h['decision']}")
     if h and h.get("applied"):
         where = (f"wall at z = {h['wall_z_m'] * 1e6:.3g} µm ({h['wall_z_source']}), mean centre height "
                  f"{h['mean_height_m'] * 1e6:.3g} µm" if "wall_z_m" in h
                  else f"assumed centre height {h['assumed_height_m'] * 1e6:.3g} µm")
         print(f"wall: {where}; mean D_par/D0 = {h.get('mean_ratio_parallel', h.get('ratio_parallel')):.3f}, "
-              f"D corrected to bulk = {h['D_bulk_xy'] * um:.4f} µm²/s")
+              f"D corrected to bulk = {h['D_bulk_xy'] * um:.4f} ± {h['D_bulk_xy_err'] * um:.4f} µm²/s")
     nd = s["nondiffusive"]
     print(f"non-diffusive tracks: {nd['n_flagged']} of {nd['n_assessed']} assessed")
     for note in s.get("notes", []):
