@@ -368,7 +368,7 @@ def _profile_all(img, rows, cols, halves, x0, y0, n2, gw, res, ok, iters):
         ok[k] = _profile_one(img, rows[k], cols[k], halves[k], x0[k], y0[k], n2[k], gw, out)
         if ok[k]:
             res[k, :] = out[:4]
-        iters[k] = out[4]
+            iters[k] = out[4]
 
 
 def profile_centres(img, rows, cols, half, x0=None, y0=None, noise=1.0, shot: float = 0.0):
@@ -404,7 +404,8 @@ def profile_centres(img, rows, cols, half, x0=None, y0=None, noise=1.0, shot: fl
     -------
     dict of ndarrays
         ``x``, ``y`` (px), ``var_x``, ``var_y`` (px^2), ``ok`` (bool; False where
-        the window leaves the frame or the fit did not converge).
+        the window leaves the frame or the fit did not converge), ``iterations``
+        (Gauss-Newton steps of the converged fits, 0 for the others).
     """
     rows = np.ascontiguousarray(rows, np.int64)
     cols = np.ascontiguousarray(cols, np.int64)
