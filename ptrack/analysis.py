@@ -231,9 +231,12 @@ def _hindered(per: pd.DataFrame, table: pd.DataFrame, three_d: bool, radius: flo
                                                f"z = {wall_z[0]:g} m predicts (delta chi2 = {ev['delta_chi2']:.1f} "
                                                f">= {ev['threshold']:g})"), **corrected)
             return out, None
+        verdict = {"no wall": "the data favour no wall", "undecided": "the data cannot tell",
+                   "neither": (f"a wall fits better than a flat D but does not fit either (chi2 = {ev['chi2_wall']:.0f} "
+                               f"for {ev['dof']} dof: stuck particles or drift?)") if ev else ""}
         why = ("too few points to test for a wall" if ev is None else
-               f"the data {'favour no wall' if ev['favours'] == 'no wall' else 'cannot tell'} (D_par vs height: "
-               f"delta chi2 = {ev['delta_chi2']:.1f}, a wall needs >= {ev['threshold']:g})")
+               f"{verdict[ev['favours']]} (D_par vs height: delta chi2 = {ev['delta_chi2']:.1f}, a wall needs >= "
+               f"{ev['threshold']:g})")
         note = (f"wall correction not applied: {why}; D is reported as measured. A wall at z = "
                 f"{wall_z[0] * 1e6:.3g} µm ({wall_z[1]}) would give D corrected to bulk = {D / mean_ratio * 1e12:.4f} "
                 "µm²/s; give --wall-z (m) to apply it")

@@ -416,3 +416,23 @@ def test_analyze_corrects_for_a_wall_only_when_the_data_show_one(hindered_walk, 
     # the user's wall is the user's word: applied, with the evidence against it still reported
     h = analyze_table(df, a, 1e-3, 293.15, wall_z=0.0, n_boot=0).summary["hindered"]
     assert h["applied"] and h["wall_z_source"] == "given" and h["evidence"]["favours"] == "no wall"
+
+
+def test_particles_stuck_on_the_substrate_are_no_evidence_for_a_wall(reflecting_walk):
+    """Deposited particles (D ~ 0 at contact) make a flat D fit worse than a wall, but no wall ratio explains them."""
+    from ptrack.analysis import analyze_table
+    from ptrack.motion.wall import wall_evidence
+
+    a = 0.5e-6
+    df = reflecting_walk[0].copy()
+    rng = np.random.default_rng(9)
+    stuck = df["particle"].to_numpy() < 40
+    n = int(stuck.sum())
+    for c in ("x", "y"):
+        first = df[stuck].groupby("particle")[c].transform("first").to_numpy()
+        df.loc[stuck, c] = first + 20e-9 * rng.standard_normal(n)
+    df.loc[stuck, "z"] = 1.01 * a + 30e-9 * rng.standard_normal(n)
+    ev = wall_evidence(df, a, 0.0)
+    assert ev["favours"] == "neither" and ev["delta_chi2"] > 0 and ev["p_wall"] < 1e-3
+    h = analyze_table(df, a, 1e-3, 293.15, n_boot=0).summary["hindered"]
+    assert h["applied"] is False and "does not fit either" in h["decision"]

@@ -101,6 +101,7 @@ __all__ = [
     "PERPENDICULAR_METHODS",
     "wall_evidence",
     "WALL_EVIDENCE_DCHI2",
+    "WALL_FIT_P",
 ]
 
 PARALLEL_METHODS = ("auto", "faxen", "first_order", "lubrication")
@@ -741,6 +742,8 @@ def unhindered_D(D, h, a, direction: str = "parallel", method: str | None = None
 #: Delta chi^2 (no-wall model minus wall model, both with one free D0) at or above which the data are taken to
 #: show a hydrodynamic wall: a likelihood ratio of exp(3) ~ 20 in favour of the wall
 WALL_EVIDENCE_DCHI2 = 6.0
+#: p-value of the wall model's chi^2 below which it does not explain the data even when it beats a flat D
+WALL_FIT_P = 1e-3
 #: smallest gap over the radius used for a measured height at or below contact (noisy z near the wall)
 _MIN_GAP = 1e-3
 
@@ -772,8 +775,10 @@ def wall_evidence(df, radius: float, wall_z: float, n_bins: int | None = None, n
     with one free parameter each: no wall (``D = D0``, flat) and a wall at
     ``wall_z`` (``D = D0 <parallel_ratio(h, a)>`` over the bin's points). The
     difference of their chi^2, ``delta_chi2 = chi2_flat - chi2_wall`` (twice
-    the log-likelihood ratio), decides: ``"wall"`` at or above ``threshold``,
-    ``"no wall"`` at or below ``-threshold``, else ``"undecided"``.
+    the log-likelihood ratio), decides: ``"wall"`` at or above ``threshold``
+    if the wall model also fits (chi^2 p-value >= :data:`WALL_FIT_P`; else
+    ``"neither"``, e.g. particles stuck on the substrate), ``"no wall"`` at or
+    below ``-threshold``, else ``"undecided"``.
 
     Only D parallel to the wall is used: D_z near a *reflecting* plane (a
     confined sample without hydrodynamic hindrance) also comes out low,
@@ -800,8 +805,9 @@ def wall_evidence(df, radius: float, wall_z: float, n_bins: int | None = None, n
     Returns
     -------
     dict or None
-        ``favours`` ("wall", "no wall", "undecided"), ``delta_chi2``,
-        ``chi2_flat``, ``chi2_wall``, ``dof``, ``threshold``, ``D0_flat``,
+        ``favours`` ("wall", "no wall", "undecided", "neither"),
+        ``delta_chi2``, ``chi2_flat``, ``chi2_wall``, ``dof``, ``p_flat``,
+        ``p_wall``, ``threshold``, ``D0_flat``,
         ``D0_flat_err``, ``D0_wall``, ``D0_wall_err`` (m^2/s), ``mean_ratio``
         (mean of ``parallel_ratio`` over all points: the D measured over the
         tracks is ``D0 * mean_ratio`` if the wall is there), ``bins`` (list of
@@ -858,9 +864,18 @@ def wall_evidence(df, radius: float, wall_z: float, n_bins: int | None = None, n
     chi_flat = float(np.sum(w * (Dg - D_flat) ** 2))
     chi_wall = float(np.sum(w * (Dg - D_wall * rg) ** 2))
     delta = chi_flat - chi_wall
-    favours = "wall" if delta >= threshold else ("no wall" if delta <= -threshold else "undecided")
+    from scipy.stats import chi2 as _chi2
+
+    dof = int(good.sum() - 1)
+    p_wall, p_flat = float(_chi2.sf(chi_wall, dof)), float(_chi2.sf(chi_flat, dof))
+    if delta >= threshold:
+        # the better of two bad fits is no evidence: stuck (deposited) particles, D ~ 0 at the bottom, also make
+        # the flat model worse than the wall, yet no wall ratio explains them
+        favours = "wall" if p_wall >= WALL_FIT_P else "neither"
+    else:
+        favours = "no wall" if delta <= -threshold else "undecided"
     return {"favours": favours, "delta_chi2": delta, "chi2_flat": chi_flat, "chi2_wall": chi_wall,
-            "dof": int(good.sum() - 1), "threshold": float(threshold), "wall_z_m": float(wall_z),
+            "dof": dof, "p_flat": p_flat, "p_wall": p_wall, "threshold": float(threshold), "wall_z_m": float(wall_z),
             "D0_flat": D_flat, "D0_flat_err": float(1 / np.sqrt(np.sum(w))),
             "D0_wall": D_wall, "D0_wall_err": float(1 / np.sqrt(np.sum(w * rg * rg))),
             "mean_ratio": float(np.mean(ratio)), "n_points": int(len(q)), "n_particles": int(P),
