@@ -334,3 +334,48 @@ def test_locate_frame_3d_is_prepare_then_locate(calib):
     assert len(a) == 1
     pd.testing.assert_frame_equal(a, b)
     assert a["z"].iloc[0] == pytest.approx(0.3e-6, abs=0.05e-6)
+
+
+
+def _calibration_cli_end_to_end(tmp_path, cal_args, optics):
+    """``ptrack render-calibration --out DIR [cal_args]``, a movie of 4 particles within +-2.6 um of focus rendered
+    with ``optics`` and the default camera, ``ptrack track movie --calib DIR/calib.tif``: (true z, median z of the
+    track nearest each particle, or NaN)."""
+    from ptrack.cli import main
+    from ptrack.table import make_table, read_table
+
+    assert main(["render-calibration", "--out", str(tmp_path / "cal")] + cal_args) == 0
+    px = render.sample_pixel_size(optics, render.Camera().pixel_pitch)
+    xs, ys = np.array([70.0, 190.0, 70.0, 190.0]), np.array([70.0, 70.0, 190.0, 190.0])
+    zs = np.array([-2.6e-6, -1.2e-6, 1.1e-6, 2.4e-6])
+    fr = np.repeat(np.arange(6), 4)
+    p = np.tile(np.arange(4), 6)
+    table = make_table(fr, fr * 0.1, p, (xs[p] + 0.3 * fr) * px, ys[p] * px, zs[p],
+                       meta={"frame_interval": 0.1, "pixel_size": px})
+    render.render_movie(table, tmp_path / "mv", (256, 256), optics=optics, seed=3, progress=False)
+    main(["track", str(tmp_path / "mv" / "movie.tif"), "--calib", str(tmp_path / "cal" / "calib.tif"),
+          "--out", str(tmp_path / "t.parquet")])
+    if not (tmp_path / "t.parquet").exists():
+        return zs, np.full(4, np.nan)
+    med = read_table(tmp_path / "t.parquet").groupby("particle")[["x_px", "y_px", "z"]].median()
+    got = []
+    for x, y in zip(xs, ys):
+        d = np.hypot(med["x_px"].to_numpy() - x - 0.75, med["y_px"].to_numpy() - y)
+        got.append(med["z"].to_numpy()[int(np.argmin(d))] if d.size and d.min() < 3.0 else np.nan)
+    return zs, np.array(got)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason=(
+    "render-calibration's defaults (ptrack/commands/render_calibration.py, sim/render/calibration.py: -60..+60 um "
+    "in 2 um steps, no astigmatism) give a stack whose +z pages look like its -z pages: particles come back at the "
+    "wrong sign. Needs a default astigmatism or a one-sided default range; and with --astigmatism 3e-7 the particles "
+    "are found but 1-8 px off in x, y (the templates' centres off focus), which this test also catches; see the H11a "
+    "report"))
+def test_render_calibration_defaults_track_end_to_end(tmp_path):
+    """``ptrack render-calibration`` with every default gives a stack ``ptrack track --calib`` uses end to end:
+    each of 4 particles (default optics and camera, within +-2.6 um of focus) tracked at its own height (median
+    z within 0.5 um)."""
+    zs, got = _calibration_cli_end_to_end(tmp_path, [], render.Optics())
+    assert np.all(np.abs(got - zs) < 0.5e-6), (zs, got)
+
