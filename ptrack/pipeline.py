@@ -182,6 +182,7 @@ def track_movie(movie, out=None, pixel_size: float | None = None, frame_interval
                 memory: int = 3, min_length: int = 5, snr: float | None = None, gain: float = 1.0, offset: float = 0.0,
                 read_noise: float = 0.0, background: str = "spatial", cm_min: float = 0.5,
                 channel: int | None = None, plane: int | None = None, series: int | None = None,
+                field_calib: bool = False, stage_drift: bool = False,
                 progress: bool = True) -> tuple[pd.DataFrame, dict]:
     """Movie -> trajectories table.
 
@@ -204,6 +205,16 @@ def track_movie(movie, out=None, pixel_size: float | None = None, frame_interval
         Shortest trajectory kept (frames).
     channel, plane, series : int, optional
         Hyperstack channel, focal plane and image series (:func:`ptrack.io.open_movie`).
+    field_calib : bool
+        With ``calib`` holding several beads across the field: correct z for
+        field-dependent aberration (field curvature, tilt) by the beads' own
+        readings (:func:`ptrack.gdpt.field.load_field_calibration`).
+    stage_drift : bool
+        Measure the rigid stage drift of every frame by phase correlation
+        (:func:`ptrack.image.drift.frame_drift`) and subtract it from the
+        positions before linking: ``x_px``, ``y_px`` are then stage
+        coordinates. Use it when the stage jumps or drifts by more than a
+        fraction of the particle spacing per frame (linking then holds).
     Others : see :func:`locate_movie`.
 
     Returns
@@ -239,9 +250,34 @@ def track_movie(movie, out=None, pixel_size: float | None = None, frame_interval
                 polarity_from = "calibration stack"
         elif calib_z is not None or calib_step is not None:
             raise UserError("--calib-z/--calib-step given without --calib", "give the calibration stack with --calib")
+        fcal = None
+        if field_calib:
+            if cal is None or isinstance(calib, Calibration):
+                raise UserError("--field-calib needs the calibration stack file", "give it with --calib STACK")
+            from .gdpt.field import load_field_calibration
+
+            t_f = time.perf_counter()
+            fcal = load_field_calibration(calib, calib=cal, locate_options={"snr": 7.0 if snr is None else snr,
+                                                                            "cm_min": cm_min},
+                                          z_csv=calib_z, z_step=calib_step, z0=calib_z0)
+            t_f = time.perf_counter() - t_f
         feats, info = locate_movie(mv, brightfield=brightfield, diameter=diameter, calib=cal, snr=snr, gain=gain,
                                    offset=offset, read_noise=read_noise, background=background, cm_min=cm_min,
                                    progress=progress)
+        if fcal is not None:
+            from .gdpt.field import correct_z
+
+            t_c = time.perf_counter()
+            feats = correct_z(feats, fcal)
+            info.setdefault("stage_times_s", {})["field_calibration"] = round(t_f + time.perf_counter() - t_c, 4)
+        if stage_drift:
+            from .image.drift import frame_drift, subtract_frame_drift
+
+            t_sd = time.perf_counter()
+            sd = frame_drift(iter(mv), px, dt)        # a second lazy pass over the frames
+            feats = subtract_frame_drift(feats, sd)   # x_px, y_px in stage coordinates, before linking
+            info.setdefault("stage_times_s", {})["stage_drift"] = round(time.perf_counter() - t_sd, 4)
+            info["stage_drift_max_px"] = float(np.hypot(sd["x_px"], sd["y_px"]).max())
         n_frames = len(mv)
         source = mv.source
         shape = mv.shape
@@ -286,6 +322,11 @@ def track_movie(movie, out=None, pixel_size: float | None = None, frame_interval
         ci = cal.info
         summary["calibration"] = {"n_beads": ci.get("n_beads"), "rejected_pages": ci.get("rejected"),
                                   "z_error_m": ci.get("z_error"), "z_source": ci.get("z_source")}
+        if fcal is not None:
+            summary["calibration"]["field"] = {"basis": fcal.basis, "n_beads": fcal.info.get("n_beads"),
+                                               "loo_rms_m": fcal.info.get("loo_rms")}
+    if stage_drift:
+        summary["stage_drift_max_px"] = info.get("stage_drift_max_px")
     if out is not None:
         t = time.perf_counter()
         write_table(table, out)

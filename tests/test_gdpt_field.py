@@ -328,3 +328,60 @@ def test_field_calibration_independent_astigmatic_gaussian():
     assert rms_field < 0.4 * rms_single and rms_field < 30e-9, (rms_single, rms_field)
     # the worst particle: off by a good fraction of a micrometre before, a few tens of nm after
     assert np.abs(e_single).max() > 0.1e-6 and np.abs(e_field).max() < 0.6 * np.abs(e_single).max()
+
+
+# --- through ptrack track --calib STACK --field-calib ----------------------------------------------------------
+
+def test_track_field_calib_end_to_end(tmp_path, curved_field):
+    """`ptrack track --calib calib.tif --field-calib` removes the field-curvature bias of the plain calibration."""
+    import json
+
+    import tifffile
+
+    from ptrack.cli import main
+    from ptrack.table import read_table
+
+    fc, _, _, _, px, stack, zk = curved_field
+    o = Optics(astigmatism=0.12e-6, field_curvature=0.4e-6, field_tilt=(0.2e-6, 0.0), field_radius=10e-6)
+    cam = Camera(photons=20000)
+    H = W = 256
+    # 12 particles held still over 6 frames (tracks to link), spread over the field and the depth
+    rng = np.random.default_rng(7)
+    gx, gy = np.meshgrid(np.linspace(40, 216, 4), np.linspace(50, 206, 3))
+    x0, y0 = gx.ravel() + rng.uniform(-5, 5, 12), gy.ravel() + rng.uniform(-5, 5, 12)
+    z0 = rng.uniform(-2e-6, 2e-6, 12)
+    n_f = 6
+    fr = np.repeat(np.arange(n_f), 12)
+    tb = make_table(fr, fr * 0.1, np.tile(np.arange(12), n_f), np.tile(x0, n_f) * px, np.tile(y0, n_f) * px,
+                    np.tile(z0, n_f), meta={"frame_interval": 0.1})
+    movie = np.stack(list(render_frames(tb, (H, W), o, cam, seed=3)))
+    tifffile.imwrite(tmp_path / "movie.tif", movie, imagej=True, metadata={"axes": "TYX"})
+    tifffile.imwrite(tmp_path / "calib.tif", stack, imagej=True, metadata={"axes": "ZYX"})
+    with open(tmp_path / "calib_z.csv", "w") as fh:
+        fh.write("page,z\n" + "".join(f"{i},{float(v)!r}\n" for i, v in enumerate(zk)))
+    shift = o.focal_shift(x0 * px, y0 * px, center=((W - 1) / 2 * px, (H - 1) / 2 * px))
+    rms = {}
+    for name, extra in (("plain", []), ("field", ["--field-calib"])):
+        out, js = tmp_path / f"{name}.parquet", tmp_path / f"{name}.json"
+        args = ["track", str(tmp_path / "movie.tif"), "--calib", str(tmp_path / "calib.tif"), "--pixel-size",
+                repr(px), "--frame-interval", "0.1", "--out", str(out), "--json", str(js), *extra]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            assert main(args) == 0
+        t = read_table(out)
+        g = t.groupby("particle")[["x", "y", "z"]].mean()
+        d = np.hypot(g["x"].to_numpy()[:, None] / px - x0, g["y"].to_numpy()[:, None] / px - y0)
+        j = d.argmin(1)
+        ok = d[np.arange(len(j)), j] < 3
+        assert ok.sum() >= 11
+        err = g["z"].to_numpy()[ok] - z0[j[ok]]
+        rms[name] = float(np.sqrt(np.mean(err ** 2)))
+        s = json.loads(js.read_text())
+        if name == "field":
+            assert s["calibration"]["field"]["n_beads"] == 9
+            assert "field_calibration" in s["stage_times_s"]
+            # z_read is kept beside the corrected z
+            assert "z" in t
+    # the plain calibration carries the focal surface (spread > 0.5 um over these positions); the field one does not
+    assert np.ptp(shift) > 0.5e-6
+    assert rms["plain"] > 0.15e-6 and rms["field"] < 60e-9, rms

@@ -121,3 +121,37 @@ def test_subtract_frame_drift_restores_stage_coordinates():
 def test_bad_input_is_a_user_error(bad):
     with pytest.raises(UserError):
         frame_drift(**bad)
+
+
+def test_track_stage_drift_keeps_tracks_across_a_stage_jump(tmp_path):
+    """`ptrack track --stage-drift`: a 15 px stage jump breaks every track without it, and none with it."""
+    import json
+    import warnings
+
+    import tifffile
+
+    from ptrack.cli import main
+    from ptrack.table import read_table
+
+    rng = np.random.default_rng(11)
+    frames, d, _ = movie(30, 0.3, rng, n=30, jump_at=15, jump=(15.0, -9.0))
+    tifffile.imwrite(tmp_path / "m.tif", np.clip(np.round(np.stack(frames)), 0, 65535).astype(np.uint16), imagej=True,
+                     metadata={"axes": "TYX"})
+    longest = {}
+    for name, extra in (("plain", []), ("drift", ["--stage-drift"])):
+        out, js = tmp_path / f"{name}.parquet", tmp_path / f"{name}.json"
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            assert main(["track", str(tmp_path / "m.tif"), "--pixel-size", "1e-7", "--frame-interval", "0.1",
+                         "--search-range", "3", "--out", str(out), "--json", str(js), *extra]) == 0
+        t = read_table(out)
+        longest[name] = int(t.groupby("particle").size().max())
+        s = json.loads(js.read_text())
+        if name == "drift":
+            assert "stage_drift" in s["stage_times_s"]
+            assert abs(s["stage_drift_max_px"] - float(np.hypot(*d.T).max())) < 1.0
+            # positions are in stage coordinates: a particle's track has no jump at frame 15
+            g = t.sort_values("frame").groupby("particle")
+            steps = np.concatenate([np.hypot(np.diff(p["x_px"]), np.diff(p["y_px"])) for _, p in g])
+            assert steps.max() < 3.0
+    assert longest["plain"] <= 15 and longest["drift"] == 30, longest

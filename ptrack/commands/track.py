@@ -24,7 +24,9 @@ def add_track_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--calib", metavar="CALIB", help="defocus calibration stack (TIFF): gives z by GDPT")
     g.add_argument("--calib-z", metavar="CSV", help="CSV with columns page, z (m) for the calibration pages")
     g.add_argument("--calib-step", metavar="DZ", type=float, help="z step between calibration pages (m)")
-    g.add_argument("--calib-z0", metavar="Z0", type=float, default=0.0, help="z of page 0 (m, default 0; negative values as --calib-z0=-3e-6)")
+    g.add_argument("--calib-z0", metavar="Z0", type=float, default=0.0, help="z of page 0 (m, default 0; e.g. --calib-z0 -3e-6)")
+    g.add_argument("--field-calib", action="store_true",
+                   help="correct z across the field by the stack's beads (several beads at several places: field curvature, tilt)")
     g.add_argument("--cm-min", type=float, default=0.5, help="correlation threshold Cm for z (default 0.5)")
     g = p.add_argument_group("image")
     pol = g.add_mutually_exclusive_group()
@@ -50,6 +52,9 @@ def add_track_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--search-range", metavar="PX", type=float, help="largest step between frames (px); estimated if omitted")
     g.add_argument("--memory", type=int, default=3, help="frames a particle may be missed (default 3)")
     g.add_argument("--min-length", type=int, default=5, help="shortest trajectory kept, frames (default 5)")
+    g.add_argument("--stage-drift", action="store_true",
+                   help="measure the stage drift of each frame by phase correlation and subtract it before linking "
+                        "(for stage jumps or drift; x, y are then stage coordinates)")
 
 
 def _index(text: str) -> int:  # argparse names it "index" in its message
@@ -73,18 +78,13 @@ _index.__name__ = "0-based index"
 def track_kwargs(args) -> dict:
     # the numeric ranges (--snr nan, --search-range=-5, --gain 0 ...) are checked once for every command
     # by ptrack.options before this runs
-    if args.memory < 0:
-        raise UserError(f"--memory {args.memory} is negative", "give 0 or more frames")
-    if args.min_length < 2:
-        raise UserError(f"--min-length {args.min_length} is below 2", "give 2 or more frames")
-    if not 0 <= args.cm_min <= 1:
-        raise UserError(f"--cm-min {args.cm_min} is outside [0, 1]", "give a correlation such as 0.5")
     return dict(pixel_size=args.pixel_size, frame_interval=args.frame_interval, calib=args.calib,
                 calib_z=args.calib_z, calib_step=args.calib_step, calib_z0=args.calib_z0,
                 brightfield=args.brightfield, diameter=args.diameter, search_range=args.search_range,
                 memory=args.memory, min_length=args.min_length, snr=args.snr, gain=args.gain, offset=args.offset,
                 read_noise=args.read_noise, background=args.background, cm_min=args.cm_min,
-                channel=args.channel, plane=args.plane, series=args.series)
+                channel=args.channel, plane=args.plane, series=args.series, field_calib=args.field_calib,
+                stage_drift=args.stage_drift)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

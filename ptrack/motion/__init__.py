@@ -56,14 +56,17 @@ _WHERE = {
     "frame_interval": "tracks",
     "parse_axes": "tracks",
     "resolve_motion_blur": "tracks",
+    "motion_blur_from_data": "tracks",
     "match_truth": "truth",
     "ensemble_velocity": "velocity",
     "particle_velocity": "velocity",
+    "default_axes": "velocity",
     "trim_deposited": "velocity",
     "velocity_profile": "velocity",
     "height_from_ratio": "wall",
     "hindered_D": "wall",
     "parallel_ratio": "wall",
+    "wall_evidence": "wall",
     "perpendicular_ratio": "wall",
     "unhindered_D": "wall",
 }
@@ -87,6 +90,6 @@ __all__ = ["AXES", "MIN_PARTICLES_BOOTSTRAP", "DiffusionResult", "PairDiffusionR
            "brownian_field", "brownian_tracks", "check_motion_blur", "crlb_diffusion", "cve_from_positions",
            "cve_variance", "drifting_tracks", "ensemble_msd", "estimate_diffusion", "frame_interval",
            "msd_from_positions", "ols_from_positions", "optimal_lags", "pair_diffusion", "parse_axes",
-           "particle_diffusion", "particle_msd", "powerlaw_flags", "resolve_motion_blur", "stokes_einstein",
-           "match_truth", "ensemble_velocity", "particle_velocity", "trim_deposited", "velocity_profile",
-           "height_from_ratio", "hindered_D", "parallel_ratio", "perpendicular_ratio", "unhindered_D"]
+           "particle_diffusion", "particle_msd", "powerlaw_flags", "resolve_motion_blur", "motion_blur_from_data", "stokes_einstein",
+           "match_truth", "ensemble_velocity", "particle_velocity", "default_axes", "trim_deposited", "velocity_profile",
+           "height_from_ratio", "hindered_D", "parallel_ratio", "wall_evidence", "perpendicular_ratio", "unhindered_D"]
