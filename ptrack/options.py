@@ -174,6 +174,7 @@ OPTIONS: dict[str, Range] = {
     "--calibrate": whole(0, "calibration rounds", hi=5),
     # simulate
     "--max-hours": positive("hours of estimated run time on one core"),
+    "--threads": whole(1, "threads"),
     # studies
     "--replicates": whole(1, "replicates per case"),
     "--particles": whole(1, "particles"),

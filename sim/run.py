@@ -254,7 +254,7 @@ def _write_state(path: Path, state: State, t: float) -> None:
 
 def run_scene(scene: Scene, out_dir, seed=None, progress: bool = True, resume: bool = False,
               max_rows_per_chunk: int = 1_000_000, checkpoint_seconds: float = 30.0,
-              max_hours: float = MAX_RUN_HOURS) -> RunResult:
+              max_hours: float = MAX_RUN_HOURS, threads: int | None = None) -> RunResult:
     """Run a scene and stream its trajectories to ``out_dir/trajectories.parquet``.
 
     Parameters
@@ -283,6 +283,9 @@ def run_scene(scene: Scene, out_dir, seed=None, progress: bool = True, resume: b
     max_hours : float
         Free particles: refuse a run estimated to take longer (h on one
         core, :func:`check_cost`).
+    threads : int, optional
+        DEM runs: threads of the pair kernel (:func:`sim.dem.dem_threads`:
+        default ``PTRACK_THREADS``, else 1).
 
     Returns
     -------
@@ -321,7 +324,7 @@ def run_scene(scene: Scene, out_dir, seed=None, progress: bool = True, resume: b
     try:
         if scene.interactions is not None and getattr(scene.interactions, "any_pair_force", False):
             from sim.dem import run_dem
-            return run_dem(scene, out_dir, resume=resume, progress=progress)
+            return run_dem(scene, out_dir, resume=resume, progress=progress, threads=threads)
         return _run_free(scene, out_dir, fp, progress, resume, max_rows_per_chunk, checkpoint_seconds, max_hours)
     except BaseException:
         _tidy_failed(out_dir, made)

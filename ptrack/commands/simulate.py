@@ -27,6 +27,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-hours", type=float, default=None, metavar="H",
                    help="free particles: refuse a run estimated to take longer than H hours on one core (default "
                         "4); the estimate is said when a run is refused")
+    p.add_argument("--threads", type=int, default=None,
+                   help="threads of the DEM pair kernel (default: PTRACK_THREADS, else 1: serial and bit-reproducible)")
     p.add_argument("--quiet", action="store_true", help="no progress bar or log lines")
 
 
@@ -38,7 +40,7 @@ def run(args) -> int:
         logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
     scene = load_scene(args.scene)
     res = run_scene(scene, args.out, seed=args.seed, progress=not args.quiet, resume=args.resume,
-                    max_hours=MAX_RUN_HOURS if args.max_hours is None else args.max_hours)
+                    max_hours=MAX_RUN_HOURS if args.max_hours is None else args.max_hours, threads=args.threads)
     if res.already_complete:
         # said even with --quiet: the user asked for work that was not done
         print(f"run already complete: {res.trajectories} has all {res.n_frames} frames; nothing to resume",
