@@ -58,6 +58,7 @@ _WHERE = {
     "resolve_motion_blur": "tracks",
     "motion_blur_from_data": "tracks",
     "match_truth": "truth",
+    "detection_scores": "truth",
     "ensemble_velocity": "velocity",
     "particle_velocity": "velocity",
     "default_axes": "velocity",
@@ -91,5 +92,5 @@ __all__ = ["AXES", "MIN_PARTICLES_BOOTSTRAP", "DiffusionResult", "PairDiffusionR
            "cve_variance", "drifting_tracks", "ensemble_msd", "estimate_diffusion", "frame_interval",
            "msd_from_positions", "ols_from_positions", "optimal_lags", "pair_diffusion", "parse_axes",
            "particle_diffusion", "particle_msd", "powerlaw_flags", "resolve_motion_blur", "motion_blur_from_data", "stokes_einstein",
-           "match_truth", "ensemble_velocity", "particle_velocity", "default_axes", "trim_deposited", "velocity_profile",
+           "match_truth", "detection_scores", "ensemble_velocity", "particle_velocity", "default_axes", "trim_deposited", "velocity_profile",
            "height_from_ratio", "hindered_D", "parallel_ratio", "wall_evidence", "perpendicular_ratio", "unhindered_D"]
