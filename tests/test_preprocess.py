@@ -1,9 +1,9 @@
 """Preprocessing: inversion, background (spatial/temporal), threshold, median; brightfield needs inversion."""
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
 
 from ptrack.errors import UserError
+from ptrack.motion import detection_scores
 from ptrack.preprocess import (invert, median3, noise_sigma, prepare, subtract_background,
                                temporal_background, threshold)
 
@@ -80,11 +80,9 @@ def test_brightfield_needs_and_gets_inversion():
     frame = next(render.render_frames(table, shape=(120, 120), camera=cam, brightfield=True, seed=3))
     assert np.median(frame) > frame[np.round(ys).astype(int), np.round(xs).astype(int)].mean()   # dark particles
 
-    def recall(df):
-        if len(df) == 0:
-            return 0.0, 0
-        d, i = cKDTree(np.c_[xs, ys]).query(df[["x_px", "y_px"]].to_numpy())
-        return len(np.unique(i[d < 1.0])) / n, int((d >= 1.0).sum())
+    def recall(df):          # fraction of the particles found within 1 px, number of detections farther
+        s = detection_scores(df, np.c_[xs, ys], max_px=1.0)
+        return s["recall"], s["n_found"] - len(s["pairs"][0])
 
     r_bf, false_bf = recall(locate(frame, sigma=1.4, brightfield=True))
     r_plain, _ = recall(locate(frame, sigma=1.4, gain=cam.gain, offset=cam.offset))
