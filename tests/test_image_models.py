@@ -32,7 +32,6 @@ import math
 
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
 from scipy.special import erfc, j0, j1
 
 # ---------------------------------------------------------------------------------------------
@@ -241,22 +240,18 @@ def crb_xy(case, x, y, illum, dust, h=1e-3):
 def scores(x_found, y_found, xs, ys, radius):
     """Recall, precision and RMSE per axis (px) of detections against the truth.
 
-    A true particle is found when a detection lies within ``radius`` px of it;
-    a detection is correct when it lies within ``radius`` of a true particle.
-    The RMSE is over the matched pairs (nearest detection of each found particle).
+    The toolkit's one rule, :func:`ptrack.motion.detection_scores`: each
+    detection is paired with its nearest true particle when closer than
+    ``radius`` px; recall is the fraction of true particles paired, precision
+    the fraction of detections paired, the RMSE over the pairs and both axes.
     """
-    t = np.c_[xs, ys]
+    from ptrack.motion import detection_scores
+
     f = np.c_[np.asarray(x_found, float), np.asarray(y_found, float)]
     if len(f) == 0:
         return 0.0, 0.0, np.nan
-    d_f, _ = cKDTree(t).query(f)
-    d_t, i_t = cKDTree(f).query(t)
-    ok = d_t < radius
-    recall = float(ok.mean())
-    precision = float((d_f < radius).mean())
-    e = f[i_t[ok]] - t[ok]
-    rmse = float(np.sqrt(np.mean(e ** 2))) if ok.any() else np.nan
-    return recall, precision, rmse
+    s = detection_scores(f, np.c_[xs, ys], max_px=radius)
+    return s["recall"], s["precision"], float(np.sqrt(np.mean(s["rmse"] ** 2)))
 
 
 def run_case(case, locator, n_frames=2, seed=0):
