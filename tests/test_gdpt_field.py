@@ -22,6 +22,7 @@ from ptrack.calibration import locate_frame_3d
 from ptrack.errors import UserError
 from ptrack.gdpt.field import (BASES, FieldCalibration, _fit_pages, build_field_calibration, correct_z,
                                field_basis, invert_reading, load_field_calibration, locate_frame_field)
+from ptrack.motion import match_truth
 from ptrack.table import make_table
 from sim.render.camera import Camera
 from sim.render.movie import expected_frames, render_frames
@@ -50,16 +51,11 @@ def _scatter(n_frames, per_frame, lo, hi, zlim, min_dist, seed):
 
 
 def _errors(found, truth, tol=3.0):
-    """(x_px, y_px, z_true, z_read, z) of each found particle matched to the truth within tol px."""
-    out = []
-    for f, grp in found.groupby("frame"):
-        t = truth[truth[:, 0] == f]
-        for r in grp.itertuples():
-            d = np.hypot(t[:, 1] - r.x_px, t[:, 2] - r.y_px)
-            j = int(np.argmin(d))
-            if d[j] < tol:
-                out.append((t[j, 1], t[j, 2], t[j, 3], r.z_read, r.z))
-    return np.array(out)
+    """(x_px, y_px, z_true, z_read, z, truth row) of each found particle paired with the nearest true one of its
+    frame within tol px (the toolkit's one rule, ptrack.motion.match_truth)."""
+    t = pd.DataFrame({"frame": truth[:, 0].astype(int), "x_px": truth[:, 1], "y_px": truth[:, 2]})
+    fi, ti = match_truth(found, t, max_px=tol)
+    return np.column_stack([truth[ti, 1:4], found.loc[fi, "z_read"], found.loc[fi, "z"], ti])
 
 
 def _locate_all(frames, fc):
@@ -217,7 +213,7 @@ def test_field_calibration_removes_field_curvature_bias(curved_field):
     e_single = m[:, 3] - m[:, 2]
     e_field = m[:, 4] - m[:, 2]
     # the single calibration reads -z_f(x, y) + its mean over the beads: a bias that varies with position
-    zf = np.array([shift[np.argmin(np.hypot(truth[:, 1] - x, truth[:, 2] - y))] for x, y in m[:, :2]])
+    zf = shift[m[:, 5].astype(int)]                       # the focal shift at each paired true particle
     assert np.ptp(e_single) > 0.5e-6
     assert np.corrcoef(e_single, -zf)[0, 1] > 0.95
     assert np.sqrt(np.mean(e_single ** 2)) > 0.15e-6
