@@ -35,7 +35,6 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from scipy.spatial import cKDTree
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -43,7 +42,7 @@ sys.path.insert(0, str(ROOT))
 from ptrack.calibration import build_calibration, locate_3d, load_calibration  # noqa: E402
 from ptrack.io import open_movie  # noqa: E402
 from ptrack.locate import cramer_rao_bound, locate, mortensen_sigma  # noqa: E402
-from ptrack.motion.truth import match_truth  # noqa: E402
+from ptrack.motion.truth import detection_scores, match_truth  # noqa: E402
 from ptrack.preprocess import prepare  # noqa: E402
 from ptrack.table import make_table  # noqa: E402
 from sim import render  # noqa: E402
@@ -69,13 +68,10 @@ def match(found_xy, true_xy, r):
     """Indices of mutual nearest pairs closer than r in one frame: (found_idx, true_idx).
 
     The one truth-matching rule of the project, :func:`ptrack.motion.truth.match_truth` with
-    ``mutual=True``, applied to two position arrays (px) of one frame.
+    ``mutual=True``, applied to two position arrays (px) of one frame (by
+    :func:`ptrack.motion.truth.detection_scores`).
     """
-    f = np.asarray(found_xy, float).reshape(-1, 2)
-    t = np.asarray(true_xy, float).reshape(-1, 2)
-    fi, ti = match_truth(pd.DataFrame({"frame": 0, "x_px": f[:, 0], "y_px": f[:, 1]}),
-                         pd.DataFrame({"frame": 0, "x_px": t[:, 0], "y_px": t[:, 1]}), max_px=r, mutual=True)
-    return np.asarray(fi, int), np.asarray(ti, int)
+    return detection_scores(found_xy, true_xy, max_px=r, mutual=True)["pairs"]
 
 
 def section_a(quick):
@@ -330,13 +326,13 @@ def section_c():
     ours, _ = track_movie(d / "movie.tif", gain=cam["gain"], offset=cam["offset"], read_noise=cam["read_noise"],
                           progress=False)
     all_truth = pd.read_parquet(d / "truth.parquet")
-    rows = []
-    for f, g in ours.groupby("frame"):
-        q = all_truth[all_truth["frame"] == f]
-        dd, ii = cKDTree(q[["x_px", "y_px"]].to_numpy()).query(g[["x_px", "y_px"]].to_numpy())
-        rows.append(pd.DataFrame({"frame": f, "particle": g["particle"].to_numpy(), "x": q["x"].to_numpy()[ii],
-                                  "y": q["y"].to_numpy()[ii], "d": dd}))
-    m = pd.concat(rows, ignore_index=True)
+    # each of our rows with its nearest true particle of the frame, at any range (the one rule, match_truth)
+    ours_r, truth_r = ours.reset_index(drop=True), all_truth.reset_index(drop=True)
+    fi, ti = match_truth(ours_r, truth_r, max_px=np.inf)
+    q, g = truth_r.loc[ti], ours_r.loc[fi]
+    m = pd.DataFrame({"frame": g["frame"].to_numpy(), "particle": g["particle"].to_numpy(), "x": q["x"].to_numpy(),
+                      "y": q["y"].to_numpy(), "d": np.hypot(*(g[["x_px", "y_px"]].to_numpy()
+                                                              - q[["x_px", "y_px"]].to_numpy()).T)})
     tm = make_table(m["frame"], m["frame"] * params["frame_interval"], m["particle"], m["x"], m["y"],
                     meta={"frame_interval": params["frame_interval"]})
     d_same = estimate_diffusion(tm, axes=("xy",), n_boot=0, field_of_view="auto").D["xy"]
