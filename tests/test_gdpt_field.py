@@ -22,7 +22,7 @@ from ptrack.calibration import locate_frame_3d
 from ptrack.errors import UserError
 from ptrack.gdpt.field import (BASES, FieldCalibration, _fit_pages, build_field_calibration, correct_z,
                                field_basis, invert_reading, load_field_calibration, locate_frame_field)
-from ptrack.motion import match_truth
+from ptrack.motion import detection_scores, match_truth
 from ptrack.table import make_table
 from sim.render.camera import Camera
 from sim.render.movie import expected_frames, render_frames
@@ -366,11 +366,10 @@ def test_track_field_calib_end_to_end(tmp_path, curved_field):
             assert main(args) == 0
         t = read_table(out)
         g = t.groupby("particle")[["x", "y", "z"]].mean()
-        d = np.hypot(g["x"].to_numpy()[:, None] / px - x0, g["y"].to_numpy()[:, None] / px - y0)
-        j = d.argmin(1)
-        ok = d[np.arange(len(j)), j] < 3
-        assert ok.sum() >= 11
-        err = g["z"].to_numpy()[ok] - z0[j[ok]]
+        # each track's mean position paired with the nearest true particle within 3 px (ptrack.motion.match_truth)
+        fi, ti = detection_scores(np.c_[g["x"].to_numpy(), g["y"].to_numpy()] / px, np.c_[x0, y0], max_px=3.0)["pairs"]
+        assert len(fi) >= 11
+        err = g["z"].to_numpy()[fi] - z0[ti]
         rms[name] = float(np.sqrt(np.mean(err ** 2)))
         s = json.loads(js.read_text())
         if name == "field":
