@@ -754,7 +754,7 @@ class DEMSystem:
                              self.sort)
             status, done, part, self.start, self.nbj, self.shift, self.hist, self.ref_pos, nb, t_done = out
             if chunker is not None:
-                chunker.done(done * self.n)
+                chunker.done(done)   # the chunker sizes calls in steps (k above), so it is told steps
             self.step += done
             done_here += done
             # fixed steps: t = t0 + (steps of this call) dt, the rounding of one kernel call whatever the
