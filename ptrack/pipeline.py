@@ -368,6 +368,13 @@ def track_many(movies, out_dir=None, scheduler: str | None = None, n_workers: in
     if dup:
         raise UserError(f"several movies would write the same output {sorted(dup)[0]}",
                         "rename the movies or track them separately with --out")
+    import glob
+
+    # a movie that is not there is said here, once, before any worker starts (not as worker tracebacks)
+    missing = [str(m) for m in movies if not Path(m).exists() and not glob.glob(str(m))]
+    if missing:
+        raise UserError(f"{len(missing)} of {len(movies)} movies not found: {', '.join(missing[:3])}"
+                        f"{' ...' if len(missing) > 3 else ''}", "check the paths (a file, a folder of frames or a glob)")
     from dask.distributed import Client, LocalCluster
 
     # workers may run elsewhere or in another folder: paths are resolved here, on the client
