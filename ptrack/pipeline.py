@@ -176,6 +176,10 @@ def default_output(movie_path, out_dir=None) -> Path:
     return Path(out_dir or ".") / f"{stem}.traj.parquet"
 
 
+#: largest fraction of frames whose stage drift has no unique correlation peak for --stage-drift to go on
+STAGE_DRIFT_UNRELIABLE_MAX = 0.2
+
+
 def track_movie(movie, out=None, pixel_size: float | None = None, frame_interval: float | None = None,
                 calib=None, calib_z=None, calib_step: float | None = None, calib_z0: float = 0.0,
                 brightfield: bool | None = None, diameter: float | None = None, search_range: float | None = None,
@@ -261,6 +265,19 @@ def track_movie(movie, out=None, pixel_size: float | None = None, frame_interval
                                                                             "cm_min": cm_min},
                                           z_csv=calib_z, z_step=calib_step, z0=calib_z0)
             t_f = time.perf_counter() - t_f
+        sd = None
+        if stage_drift:     # first, so that a movie whose drift cannot be measured is refused before the work
+            from .image.drift import PEAK_RATIO_MIN, frame_drift
+
+            t_sd = time.perf_counter()
+            sd = frame_drift(iter(mv), px, dt)        # a lazy pass over the frames
+            t_sd = time.perf_counter() - t_sd
+            bad = int((~sd["reliable"]).sum())
+            if bad > STAGE_DRIFT_UNRELIABLE_MAX * len(sd):
+                raise UserError(f"the stage drift cannot be measured in {bad} of {len(sd)} frames of {mv.source}: "
+                                f"no unique correlation peak (ratio < {PEAK_RATIO_MIN}; the particles change too much "
+                                "between frames for phase correlation)",
+                                "omit --stage-drift (the tracks' own drift is in ptrack analyze / ptrack.msd)")
         feats, info = locate_movie(mv, brightfield=brightfield, diameter=diameter, calib=cal, snr=snr, gain=gain,
                                    offset=offset, read_noise=read_noise, background=background, cm_min=cm_min,
                                    progress=progress)
@@ -270,14 +287,14 @@ def track_movie(movie, out=None, pixel_size: float | None = None, frame_interval
             t_c = time.perf_counter()
             feats = correct_z(feats, fcal)
             info.setdefault("stage_times_s", {})["field_calibration"] = round(t_f + time.perf_counter() - t_c, 4)
-        if stage_drift:
-            from .image.drift import frame_drift, subtract_frame_drift
+        if sd is not None:
+            from .image.drift import subtract_frame_drift
 
-            t_sd = time.perf_counter()
-            sd = frame_drift(iter(mv), px, dt)        # a second lazy pass over the frames
+            t0_sd = time.perf_counter()
             feats = subtract_frame_drift(feats, sd)   # x_px, y_px in stage coordinates, before linking
-            info.setdefault("stage_times_s", {})["stage_drift"] = round(time.perf_counter() - t_sd, 4)
+            info.setdefault("stage_times_s", {})["stage_drift"] = round(t_sd + time.perf_counter() - t0_sd, 4)
             info["stage_drift_max_px"] = float(np.hypot(sd["x_px"], sd["y_px"]).max())
+            info["stage_drift_reliable_frames"] = int(sd["reliable"].sum())
         n_frames = len(mv)
         source = mv.source
         shape = mv.shape
@@ -327,6 +344,7 @@ def track_movie(movie, out=None, pixel_size: float | None = None, frame_interval
                                                "loo_rms_m": fcal.info.get("loo_rms")}
     if stage_drift:
         summary["stage_drift_max_px"] = info.get("stage_drift_max_px")
+        summary["stage_drift_reliable_frames"] = info.get("stage_drift_reliable_frames")
     if out is not None:
         t = time.perf_counter()
         write_table(table, out)

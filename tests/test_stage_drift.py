@@ -155,3 +155,26 @@ def test_track_stage_drift_keeps_tracks_across_a_stage_jump(tmp_path):
             steps = np.concatenate([np.hypot(np.diff(p["x_px"]), np.diff(p["y_px"])) for _, p in g])
             assert steps.max() < 3.0
     assert longest["plain"] <= 15 and longest["drift"] == 30, longest
+
+
+def test_no_unique_peak_is_unreliable_and_track_refuses(tmp_path):
+    """Sparse particles stepping farther than their size leave no correlation peak: the frames are marked
+    unreliable (drift interpolated, kept out of the reference) and `track --stage-drift` refuses, writing nothing."""
+    import tifffile
+
+    from ptrack.cli import main
+
+    rng = np.random.default_rng(5)
+    frames, d, _ = movie(20, 5.0, rng, n=8)           # 8 spots, 5 px rms steps, no stage jump
+    r = frame_drift(frames, 1e-7)
+    assert r["reliable"].iloc[0] and (~r["reliable"]).mean() > 0.8
+    # what is kept is an interpolation between reliable frames, not a noise peak tens of px away
+    assert np.abs(r[["x_px", "y_px"]].to_numpy()).max() < 10
+    good = frame_drift(movie(20, 0.3, np.random.default_rng(6), n=50)[0], 1e-7)
+    assert good["reliable"].all() and (good["peak_ratio"].iloc[1:] > 2).all()
+    tifffile.imwrite(tmp_path / "m.tif", np.clip(np.round(np.stack(frames)), 0, 65535).astype(np.uint16),
+                     imagej=True, metadata={"axes": "TYX"})
+    out = tmp_path / "t.parquet"
+    assert main(["track", str(tmp_path / "m.tif"), "--pixel-size", "1e-7", "--frame-interval", "0.1",
+                 "--stage-drift", "--out", str(out)]) == 2
+    assert not out.exists()
