@@ -366,7 +366,8 @@ def track_many(movies, out_dir=None, scheduler: str | None = None, n_workers: in
     ----------
     movies : sequence of path-like
     out_dir : path-like, optional
-        Directory for ``<stem>.traj.parquet`` files (default: current directory).
+        Directory for ``<stem>.traj.parquet`` files (default: current directory);
+        movies of one name in several folders give ``<folder>_<stem>.traj.parquet``.
     scheduler : str, optional
         Address of a running dask scheduler; default a LocalCluster of
         ``n_workers`` single-threaded processes.
@@ -382,6 +383,10 @@ def track_many(movies, out_dir=None, scheduler: str | None = None, n_workers: in
     import os
 
     outs = [default_output(m, out_dir) for m in movies]
+    if len(set(outs)) < len(outs):
+        # movies of one name in several folders (run1/movie.tif, run2/movie.tif): name each by its folder too
+        outs = [o.with_name(f"{Path(os.path.abspath(str(m).rstrip('/*'))).parent.name}_{o.name}")
+                if outs.count(o) > 1 else o for m, o in zip(movies, outs)]
     dup = {str(o) for o in outs if outs.count(o) > 1}
     if dup:
         raise UserError(f"several movies would write the same output {sorted(dup)[0]}",

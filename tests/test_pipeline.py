@@ -11,7 +11,7 @@ from ptrack.errors import UserError
 from ptrack.motion import match_truth
 from ptrack.msd import estimate_diffusion, stokes_einstein
 from ptrack.analysis import analyze_movie
-from ptrack.pipeline import default_output, track_movie
+from ptrack.pipeline import track_movie
 from ptrack.table import make_table, read_table, validate
 
 render = pytest.importorskip("sim.render")
@@ -127,14 +127,17 @@ def test_cli_track_json_and_several_movies_with_dask(movie, tmp_path):
     assert r.returncode == 0, r.stderr
     s = json.loads(js.read_text())
     assert {"n_frames", "n_localisations", "n_tracks", "wall_time_s", "frames_per_s"} <= set(s)
-    a, b = tmp_path / "a.tif", tmp_path / "b.tif"
-    shutil.copy(movie["path"], a)
-    shutil.copy(movie["path"], b)
+    # one movie name in two folders (as microscopes save them): each output is named by its folder too
+    a, b = tmp_path / "run1" / "movie.tif", tmp_path / "run2" / "movie.tif"
+    for m in (a, b):
+        m.parent.mkdir()
+        shutil.copy(movie["path"], m)
     outdir = tmp_path / "out"
     r = subprocess.run([sys.executable, "-m", "ptrack", "track", str(a), str(b), "--out", str(outdir), "--workers", "1",
                         "--json", str(js)] + cam, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
-    ta, tb = read_table(default_output(a, outdir)), read_table(default_output(b, outdir))
+    assert sorted(p.name for p in outdir.iterdir()) == ["run1_movie.traj.parquet", "run2_movie.traj.parquet"]
+    ta, tb = read_table(outdir / "run1_movie.traj.parquet"), read_table(outdir / "run2_movie.traj.parquet")
     cols = ["frame", "x_px", "y_px", "mass", "sigma_x"]       # same localisations from both workers' runs
     pd.testing.assert_frame_equal(ta[cols].sort_values(cols[:3]).reset_index(drop=True),
                                   tb[cols].sort_values(cols[:3]).reset_index(drop=True))
