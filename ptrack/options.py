@@ -57,6 +57,12 @@ class Range:
     nonzero: bool = False
     increasing: bool = False
 
+    def check(self, name: str, v) -> None:
+        """Raise a one-line UserError naming option ``name`` if ``v`` is outside the range."""
+        why = self.problem(v)
+        if why:
+            raise UserError(f"{name} {_show(v)} is {why}", f"give {name} as {self.expected}")
+
     def problem(self, v) -> str | None:
         """Why ``v`` is outside the range, or None if it is inside."""
         if isinstance(v, bool) or not isinstance(v, (int, float)):
@@ -96,10 +102,37 @@ def whole(lo: int, unit: str, hi: int | None = None) -> Range:
     return Range(f"a whole number {span} ({unit})", lo=lo, hi=hi, integer=True)
 
 
-#: The motion-blur parameter R of a camera exposure: 0 (instantaneous) to 1/4
-#: (the exposure lasts the whole frame interval, uniform shutter: R = 1/6).
-MOTION_BLUR = Range("a motion-blur parameter R in [0, 1/4) (1/6: full-frame exposure, 0: instantaneous)",
-                    lo=0.0, hi=MOTION_BLUR_MAX, hi_open=True)
+@dataclass(frozen=True)
+class RuleRange(Range):
+    """A range whose check is a function of the library, so the command line and the API share one rule and message.
+
+    ``rule`` is ``"module:function"``; the function takes ``(value, name)``,
+    returns the value or raises :class:`~ptrack.errors.UserError`. It is
+    imported when a value is checked (the command line stays light until an
+    option is given). ``lo``, ``hi`` ... only describe the range (for help
+    and tests); they are not a second check.
+    """
+
+    rule: str = ""
+
+    def check(self, name: str, v) -> None:
+        import importlib
+
+        mod, func = self.rule.split(":")
+        getattr(importlib.import_module(mod), func)(v, name)
+
+    def problem(self, v) -> str | None:
+        try:
+            self.check("value", v)
+        except UserError as e:
+            return e.cause.removeprefix(f"value = {v!r} ")
+        return None
+
+
+#: The motion-blur parameter R of a camera exposure, 0 (instantaneous) to 1/4 (uniform shutter open the whole
+#: frame: R = 1/6): checked by ptrack.motion.tracks.check_motion_blur, the rule of the library.
+MOTION_BLUR = RuleRange("a motion-blur parameter R in [0, 1/4) (1/6: full-frame exposure, 0: instantaneous)",
+                        lo=0.0, hi=MOTION_BLUR_MAX, hi_open=True, rule="ptrack.motion.tracks:check_motion_blur")
 SEED = whole(0, "random seed")
 
 #: option string -> allowed range, for every numeric option of every command
@@ -331,9 +364,7 @@ def check_namespace(command: str, args: argparse.Namespace, actions) -> None:
             rng = Range("a finite number") if action.type is float else Range("a whole number", integer=True)
         values = list(value) if isinstance(value, (list, tuple)) else [value]
         for v in values:
-            why = rng.problem(v)
-            if why:
-                raise UserError(f"{name} {_show(v)} is {why}", f"give {name} as {rng.expected}")
+            rng.check(name, v)
         if rng.increasing and any(b <= a for a, b in zip(values, values[1:])):
             raise UserError(f"{name} {' '.join(map(_show, values))} is not increasing",
                             f"give {name} as {rng.expected}")

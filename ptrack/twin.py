@@ -45,7 +45,7 @@ import pandas as pd
 
 from .constants import BOLTZMANN, STANDARD_GRAVITY, VACUUM_PERMITTIVITY
 from .errors import UserError, atomic_output, check_positive
-from .motion.tracks import motion_blur_from_data
+from .motion.tracks import exposure_from_motion_blur, motion_blur_from_data, motion_blur_from_exposure
 
 __all__ = ["infer_parameters", "measure_camera", "build_scene", "to_toml", "apply_overrides", "run_twin",
            "interpret"]
@@ -122,7 +122,9 @@ def twin_exposure(motion_blur: dict | None, frame_interval: float) -> tuple[floa
     """Camera exposure of the twin's movie from the blur the measured data imply.
 
     A uniform exposure of length ``e`` in a frame of ``dt`` gives R = (e / dt) / 6, so the twin is rendered
-    with ``e = min(6 R, 1) dt`` when R is significant (above 2 of its errors and 0.03), else instantaneously.
+    with ``e = min(6 R, 1) dt`` (:func:`ptrack.motion.tracks.exposure_from_motion_blur`) when R is significant
+    (above 2 of its errors and 0.03), else instantaneously; its R is that of ``e``
+    (:func:`ptrack.motion.tracks.motion_blur_from_exposure`: R capped at 1/6).
 
     Parameters
     ----------
@@ -140,7 +142,7 @@ def twin_exposure(motion_blur: dict | None, frame_interval: float) -> tuple[floa
     Examples
     --------
     >>> e, R, n = twin_exposure({"R": 0.1, "R_err": 0.01}, 0.1)
-    >>> round(e, 12), R, n
+    >>> round(e, 12), round(R, 12), n
     (0.06, 0.1, 8)
     >>> twin_exposure({"R": 0.02, "R_err": 0.01}, 0.1)
     (None, 0.0, 0)
@@ -148,7 +150,8 @@ def twin_exposure(motion_blur: dict | None, frame_interval: float) -> tuple[floa
     mb = motion_blur
     if not (mb and mb["R"] > 2 * mb["R_err"] and mb["R"] > 0.03):
         return None, 0.0, 0
-    return min(6 * mb["R"], 1.0) * frame_interval, min(float(mb["R"]), 1 / 6), 8     # R = (exposure / dt) / 6
+    exposure = exposure_from_motion_blur(mb["R"], frame_interval)
+    return exposure, motion_blur_from_exposure(exposure, frame_interval), 8
 
 
 def _implied_motion_blur(table: pd.DataFrame) -> dict | None:

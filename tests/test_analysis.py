@@ -104,6 +104,18 @@ def test_one_motion_blur_range_for_every_estimator():
     assert check_motion_blur(0.0) == 0.0
 
 
+@pytest.mark.parametrize("argv", [["msd", "t.parquet", "--motion-blur", "0.3"],
+                                  ["velocity", "t.parquet", "--motion-blur", "0.3"],
+                                  ["compare", "a.parquet", "b.parquet", "--motion-blur", "0.3"]])
+def test_the_command_line_refuses_R_with_the_library_rule_and_message(argv, capsys):
+    from ptrack.cli import main
+
+    with pytest.raises(UserError) as api:
+        check_motion_blur(0.3, "--motion-blur")
+    assert main(argv) == 2
+    assert capsys.readouterr().err.strip() == f"error: {api.value}"
+
+
 @pytest.mark.parametrize("pairs, expected, why", [
     (None, "tracks", "no linking-free"),
     ({"D": {"xy": 1.01}, "D_err": {"xy": 0.02}, "link_ambiguity": 0.01}, "linking-free (pairs)", "agree"),

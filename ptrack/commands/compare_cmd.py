@@ -20,7 +20,6 @@ import argparse
 from pathlib import Path
 
 from ..errors import UserError, check_positive
-from ..options import MOTION_BLUR
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -45,6 +44,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _blur(text: str, n: int) -> list:
+    from ..motion.tracks import check_motion_blur
+
     vals = []
     for s in text.split(","):
         s = s.strip()
@@ -52,10 +53,8 @@ def _blur(text: str, n: int) -> list:
             v = float(s.split("/")[0]) / float(s.split("/")[1]) if "/" in s else float(s)
         except (ValueError, ZeroDivisionError):
             raise UserError(f"--motion-blur {text!r} is not understood", "give numbers such as 1/6 or 0, comma-separated")
-        why = MOTION_BLUR.problem(v)  # the one range of R (ptrack.options), as for the numeric --motion-blur
-        if why:
-            raise UserError(f"--motion-blur {s} is {why}", f"give --motion-blur as {MOTION_BLUR.expected}")
-        vals.append(v)
+        # the one rule of R (and message), as for the numeric --motion-blur of the other commands
+        vals.append(check_motion_blur(v, f"--motion-blur {s}" if "/" in s else "--motion-blur"))
     if len(vals) == 1:
         vals = vals * n
     if len(vals) != n:

@@ -8,7 +8,9 @@ table is checked, sorted and timed by one rule:
   that works per coordinate (velocities) takes the components of the axes,
   so ``"xy"`` means the x and y columns everywhere.
 - :func:`frame_interval`: seconds per frame.
-- :func:`check_motion_blur`: the motion-blur parameter R.
+- :func:`check_motion_blur`: the motion-blur parameter R (library and
+  command line), and :func:`motion_blur_from_exposure` /
+  :func:`exposure_from_motion_blur`: R <-> the exposure of a uniform shutter.
 - :func:`sort_tracks` (rows sorted by particle and frame) and
   :func:`prepare_tracks` (dense-in-time arrays with NaN in the gaps, for the
   MSD and CVE kernels), built on it.
@@ -82,20 +84,101 @@ def axis_components(axes) -> tuple:
     return tuple(c for c in COMPONENTS if c in names)
 
 
-def check_motion_blur(motion_blur) -> float:
-    """The motion-blur parameter R as a float in [0, 1/4), or a UserError (the one range of the toolkit).
+def check_motion_blur(motion_blur, name: str = "motion_blur") -> float:
+    """The motion-blur parameter R as a float in [0, 1/4), or a UserError: the one rule (and message) of the toolkit.
 
-    R = (exposure / frame interval) / 6 for a uniform exposure: 1/6 with the
-    shutter open the whole frame, 0 for instantaneous positions (simulations).
+    R = (exposure / frame interval) / 6 for a uniform exposure
+    (:func:`motion_blur_from_exposure`): 1/6 with the shutter open the whole
+    frame, 0 for instantaneous positions (simulations). The command-line
+    option ``--motion-blur`` is checked by this function too
+    (:data:`ptrack.options.MOTION_BLUR`).
+
+    Parameters
+    ----------
+    motion_blur : float
+        R (dimensionless).
+    name : str
+        How the value is named in the message (``"--motion-blur"`` on the command line).
+
+    Examples
+    --------
+    >>> check_motion_blur(1 / 6) == 1 / 6
+    True
+    >>> check_motion_blur(0.3, "--motion-blur")
+    Traceback (most recent call last):
+    ...
+    ptrack.errors.UserError: --motion-blur = 0.3 outside [0, 1/4); use exposure / frame interval / 6: 1/6 for a shutter open the whole frame, 0 for instantaneous
     """
+    fix = "use exposure / frame interval / 6: 1/6 for a shutter open the whole frame, 0 for instantaneous"
     try:
+        if isinstance(motion_blur, bool):
+            raise TypeError
         R = float(motion_blur)
     except (TypeError, ValueError):
-        raise UserError(f"motion_blur = {motion_blur!r} is not a number", "give R = exposure / frame interval / 6")
+        raise UserError(f"{name} = {motion_blur!r} is not a number", fix)
     if not (math.isfinite(R) and 0.0 <= R < MOTION_BLUR_MAX):
-        raise UserError(f"motion_blur = {motion_blur!r} outside [0, 1/4)",
-                        "use exposure / frame interval / 6: 1/6 for a shutter open the whole frame, 0 for instantaneous")
+        raise UserError(f"{name} = {motion_blur!r} outside [0, 1/4)", fix)
     return R
+
+
+#: R of a uniform exposure lasting the whole frame interval (the largest R a uniform shutter gives)
+FULL_FRAME_MOTION_BLUR = 1.0 / 6.0
+
+
+def motion_blur_from_exposure(exposure: float, frame_interval: float) -> float:
+    """R of a uniform exposure: (exposure / frame interval) / 6; the inverse of :func:`exposure_from_motion_blur`.
+
+    Parameters
+    ----------
+    exposure : float
+        Time the shutter is open per frame, s (0: instantaneous).
+    frame_interval : float
+        Time between frames, s.
+
+    Returns
+    -------
+    float
+        R in [0, 1/6] (an exposure longer than the frame interval by more than
+        1e-9 relative is a UserError).
+
+    Examples
+    --------
+    >>> motion_blur_from_exposure(0.1, 0.1) == FULL_FRAME_MOTION_BLUR, motion_blur_from_exposure(0.0, 0.1)
+    (True, 0.0)
+    """
+    exposure, frame_interval = float(exposure), float(frame_interval)
+    if not (math.isfinite(frame_interval) and frame_interval > 0):
+        raise UserError(f"frame interval {frame_interval!r} s is not positive", "give the time between frames in s")
+    R = exposure / frame_interval / 6.0
+    if not (math.isfinite(R) and 0.0 <= R <= FULL_FRAME_MOTION_BLUR * (1 + 1e-9)):
+        raise UserError(f"exposure {exposure:g} s is not within 0 .. the frame interval {frame_interval:g} s",
+                        "give the exposure time per frame in s (at most the frame interval)")
+    return min(R, FULL_FRAME_MOTION_BLUR)
+
+
+def exposure_from_motion_blur(motion_blur: float, frame_interval: float) -> float:
+    """Exposure (s) of a uniform shutter giving R: 6 R x frame interval; the inverse of :func:`motion_blur_from_exposure`.
+
+    Parameters
+    ----------
+    motion_blur : float
+        R >= 0 (dimensionless). A measured R above 1/6 (noise, or a
+        non-uniform exposure) gets the whole frame interval: no uniform
+        exposure gives more.
+    frame_interval : float
+        Time between frames, s.
+
+    Examples
+    --------
+    >>> round(exposure_from_motion_blur(0.1, 0.1), 12), exposure_from_motion_blur(0.2, 0.1)
+    (0.06, 0.1)
+    """
+    R, frame_interval = float(motion_blur), float(frame_interval)
+    if not (math.isfinite(R) and R >= 0):
+        raise UserError(f"motion blur R = {motion_blur!r} is not a number >= 0", "give R = exposure / frame interval / 6")
+    if not (math.isfinite(frame_interval) and frame_interval > 0):
+        raise UserError(f"frame interval {frame_interval!r} s is not positive", "give the time between frames in s")
+    return min(R / FULL_FRAME_MOTION_BLUR, 1.0) * frame_interval
 
 
 def frame_interval(df: pd.DataFrame) -> float:
@@ -318,10 +401,12 @@ def _blur_from_metadata(meta: dict):
     if _number(sub) and int(sub) == 0 and str(meta.get("source", "")).startswith("sim.render"):
         return 0.0, "rendered without motion blur (motion_blur_substeps = 0)"
     exp, fi = meta.get("exposure"), meta.get("frame_interval")
-    if _number(exp) and _number(fi) and fi > 0 and exp >= 0:
-        R = float(exp) / float(fi) / 6.0
-        if R <= 1 / 6 + 1e-9:
-            return min(R, 1 / 6), f"exposure {float(exp):g} s / frame interval {float(fi):g} s / 6"
+    if _number(exp) and _number(fi):
+        try:
+            R = motion_blur_from_exposure(exp, fi)
+        except UserError:  # an exposure longer than the frame: not a uniform shutter, the metadata are not used
+            return None
+        return R, f"exposure {float(exp):g} s / frame interval {float(fi):g} s / 6"
     return None
 
 
