@@ -66,9 +66,10 @@ from scipy import stats
 
 from .errors import UserError, atomic_output
 
+from .motion.tracks import COMPONENTS  # noqa: F401  (re-exported: the coordinate columns, one definition)
+
 __all__ = ["compare_tables", "holm", "write_report", "plot_comparison", "COMPONENTS"]
 
-COMPONENTS = ("x", "y", "z")
 MIN_PARTICLES = 5          # fewer particles than this in a table: "insufficient"
 MIN_STEPS = 50             # fewer steps (per table) at a lag: "insufficient"
 Z95 = 1.959963984540054
@@ -159,6 +160,7 @@ class _Table:
     """A trajectories table with what every quantity needs (sorted, particle index, frame interval)."""
 
     def __init__(self, df: pd.DataFrame, name: str, motion_blur: float):
+        from .motion.velocity import default_axes
         from .msd import frame_interval
         from .table import validate
 
@@ -167,7 +169,9 @@ class _Table:
         self.df = df.sort_values(["particle", "frame"], kind="stable").reset_index(drop=True)
         self.dt = frame_interval(self.df)
         self.motion_blur = motion_blur
-        self.comps = tuple(c for c in COMPONENTS if np.isfinite(self.df[c].to_numpy(float)).any())
+        # x, y and z when z changes: the one rule of the analysed axes (ptrack.motion.velocity.default_axes), so a
+        # 2D table with z = 0 in every row is compared as 2D
+        self.comps = default_axes(self.df)
         self.n_particles = int(self.df["particle"].nunique())
         self.dep_col = next((c for c in ("deposited", "contact") if c in self.df.columns), None)
 

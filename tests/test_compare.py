@@ -81,6 +81,17 @@ def test_3d_drift_heights_and_deposition():
     assert q["deposition"]["effect"]["value"] == pytest.approx(-0.5)
 
 
+def test_a_2d_table_with_constant_z_is_compared_as_2d():
+    # z = 0 in every row (a 2D table written with a z column): no motion along z, so no z quantity
+    # (the one rule of the analysed axes, ptrack.motion.velocity.default_axes; finite z alone made it 3D)
+    a, b = _tracks(seed=1), _tracks(seed=2)
+    a["z"] = b["z"] = 0.0
+    res = compare_tables([a, b], seed=0, n_boot=50, n_perm=100)
+    assert [t["components"] for t in res["tables"]] == [["x", "y"], ["x", "y"]]
+    assert not [k for k in res["comparisons"][0]["verdicts"] if k.endswith("_z")]
+    assert "D_x" in res["comparisons"][0]["verdicts"]
+
+
 def test_compare_command_json_and_self_contained_report(tmp_path, capsys):
     pa, pb = tmp_path / "a.parquet", tmp_path / "b.parquet"
     write_table(_tracks(n_p=60, n_f=100, seed=8), pa)

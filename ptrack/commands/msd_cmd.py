@@ -103,7 +103,7 @@ def run(args) -> int:
     from ..table import read_table
 
     from ..motion.stokes import implausible_D_note
-    from ..motion.tracks import resolve_motion_blur
+    from ..motion.tracks import axis_components, resolve_motion_blur
 
     axes, plot_path = _check_args(args)
     df = read_table(args.traj)
@@ -119,7 +119,8 @@ def run(args) -> int:
         raise UserError("--viscosity given without --radius (and the table has no 'radius' column)",
                         "give --radius (m) for the Stokes-Einstein value")
 
-    flag_axis = "xy" if all(a in ("x", "y", "xy") for a in axes) else "xyz" if any("z" in a for a in axes) else "xy"
+    # the flags' axes: x, y and (if the MSD axes use it; ptrack.motion.tracks.axis_components) z
+    flag_axis = "xyz" if "z" in axis_components(axes) else "xy"
     flags = M.powerlaw_flags(df, axes=flag_axis, level=args.flag_level, seed=args.seed,
                              subtract_drift=args.subtract_drift)
     flagged = flags[flags["flagged"]]
