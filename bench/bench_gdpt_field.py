@@ -37,6 +37,7 @@ from ptrack.gdpt.field import build_field_calibration, correct_z  # noqa: E402
 from sim.render.camera import Camera  # noqa: E402
 from sim.render.movie import render_frames  # noqa: E402
 from sim.render.optics import Optics, sample_pixel_size  # noqa: E402
+from ptrack.motion import detection_scores  # noqa: E402
 from ptrack.table import make_table  # noqa: E402
 
 
@@ -80,14 +81,12 @@ def case_gaussian(n_frames):
 
 
 def _match(df, truth, f, tol=3.0):
+    """(x_true, y_true, z_true, z_found) of each localisation of frame ``f`` paired with the nearest true particle
+    closer than ``tol`` px (ptrack.motion.detection_scores: the one truth-matching rule)."""
     t = truth[truth[:, 0] == f]
-    out = []
-    for r in df.itertuples():
-        d = np.hypot(t[:, 1] - r.x_px, t[:, 2] - r.y_px)
-        j = int(np.argmin(d))
-        if d[j] < tol:
-            out.append((t[j, 1], t[j, 2], t[j, 3], r.z))
-    return out
+    fi, ti = detection_scores(df[["x_px", "y_px"]].to_numpy(float), t[:, 1:3], max_px=tol)["pairs"]
+    z = df["z"].to_numpy(float)
+    return [(t[j, 1], t[j, 2], t[j, 3], z[i]) for i, j in zip(fi, ti)]
 
 
 def run_case(case, n_frames):
