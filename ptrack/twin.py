@@ -46,6 +46,7 @@ import pandas as pd
 from .constants import BOLTZMANN, STANDARD_GRAVITY, VACUUM_PERMITTIVITY
 from .errors import UserError, atomic_output, check_positive
 from .motion.tracks import exposure_from_motion_blur, motion_blur_from_data, motion_blur_from_exposure
+from .motion.velocity import default_axes
 
 __all__ = ["infer_parameters", "measure_camera", "build_scene", "to_toml", "apply_overrides", "run_twin",
            "interpret"]
@@ -258,7 +259,7 @@ def infer_parameters(table: pd.DataFrame, temperature: float, viscosity: float, 
 
     check_positive("temperature", temperature)
     check_positive("viscosity", viscosity)
-    three_d = bool(np.isfinite(table["z"].to_numpy(float)).any())
+    three_d = "z" in default_axes(table)   # heights that change (the one rule; z = 0 in every row is a 2D table)
     kT = BOLTZMANN * temperature
     out: dict = {"three_d": three_d, "temperature_K": temperature, "notes": []}
 
@@ -696,7 +697,7 @@ def run_twin(movie, out_dir, track_kwargs: dict, temperature: float, viscosity: 
     px, dt = float(meta["pixel_size"]), frame_interval(measured)       # the one frame-interval rule
     shape = meta.get("frame_shape")
     n_frames = int(meta.get("n_frames") or measured["frame"].max() + 1)
-    three_d = bool(np.isfinite(measured["z"].to_numpy(float)).any())
+    three_d = "z" in default_axes(measured)   # the one rule of a 3D table (ptrack.motion.velocity.default_axes)
     brightfield = bool(track_kwargs.get("brightfield"))
     if three_d and not wall:
         # no substrate near the particles (e.g. a movie around focus in the bulk): the twin's box floor is
