@@ -56,6 +56,7 @@ from .motion.diffusion import DiffusionResult, estimate_diffusion
 from .motion.pairs import pair_diffusion
 from .motion.stokes import implausible_D_note, stokes_einstein
 from .motion.tracks import check_motion_blur, frame_interval, resolve_motion_blur
+from .motion.velocity import default_axes
 
 #: quantile of the measured heights taken as the lowest centre height reached (3D wall from the data)
 WALL_QUANTILE = 0.005
@@ -285,7 +286,8 @@ def analyze_table(table: pd.DataFrame, radius: float, viscosity: float, temperat
     radius = p["radius"]
     R, R_source = resolve_motion_blur(table, p.get("motion_blur"))
     dt = frame_interval(table)
-    three_d = bool(np.isfinite(table["z"].to_numpy(float)).any())
+    # 3D by the one axes rule: z that changes (a 2D table with z = 0 in every row is 2D)
+    three_d = "z" in default_axes(table)
     axes = ("x", "y", "xy")
     notes = []
     # The image edges cut tracks: correct the loss of long steps there (x and y only: in z the
@@ -325,7 +327,7 @@ def analyze_table(table: pd.DataFrame, radius: float, viscosity: float, temperat
         notes.append(note)
     summary["hindered"] = hind
     # the common drift (EPD: electrophoretic or sedimentation drift), per particle by GLS, then the ensemble
-    from .motion.velocity import default_axes, ensemble_velocity, particle_velocity
+    from .motion.velocity import ensemble_velocity, particle_velocity
 
     try:
         ens = ensemble_velocity(particle_velocity(table, axes=default_axes(table), motion_blur=R), seed=seed)
@@ -416,7 +418,7 @@ def write_report(analysis: Analysis, report_dir, movie=None) -> Path:
                                      D_stokes_einstein=s["D_stokes_einstein"],
                                      D_hindered=hind.get("D_SE_hindered_xy") if hind.get("applied") else None,
                                      label_ensemble=f"ensemble ({s['D_method']})")
-        if np.isfinite(table["z"].to_numpy(float)).any():
+        if "z" in default_axes(table) and "cm" in table:
             plot.plot_cm_vs_z(table, rd / "cm_vs_z.png")
         analysis.per_particle.to_csv(rd / "per_particle.csv", index=False)
         analysis.flags.to_csv(rd / "nondiffusive.csv", index=False)

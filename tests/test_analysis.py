@@ -224,3 +224,18 @@ def test_default_axes_one_rule_for_velocity_and_analysis():
     assert default_axes(t) == ("x", "y")
     t["z"] = np.nan
     assert default_axes(t) == ("x", "y")
+
+
+def test_a_2d_table_with_z_zero_is_analysed_as_2d():
+    """z = 0 in every row (what many tools write for 2D) is 2D by the one axes rule: the given height is used,
+    not every particle read at a wall at z = 0 (that raised 'height ... not above the particle radius')."""
+    xy = brownian_tracks(20, 60, 0.5e-12, 0.1, n_dims=2, seed=3)
+    n, T, _ = xy.shape
+    fr = np.tile(np.arange(T), n)
+    out = []
+    for z in (np.zeros(n * T), np.full(n * T, np.nan)):
+        t = make_table(fr, fr * 0.1, np.repeat(np.arange(n), T), xy[:, :, 0].ravel(), xy[:, :, 1].ravel(), z,
+                       meta={"frame_interval": 0.1, "kind": "truth"})
+        out.append(analyze_table(t, 4.3e-7, 1e-3, 293.15, height=600e-9, n_boot=20).summary)
+    assert out[0]["D"] == out[1]["D"] and out[0]["hindered"] == out[1]["hindered"]
+    assert out[0]["hindered"]["applied"]
