@@ -286,7 +286,9 @@ def plot_velocity(df: pd.DataFrame, vel: pd.DataFrame, path=None, profile: pd.Da
     fig, (ax0, ax1) = new_figure(figsize=(11, 4.6), dpi=110, ncols=2)
     srt = df.sort_values(["particle", "frame"], kind="stable")
     part = srt["particle"].to_numpy()
-    side = "z" in srt.columns and np.isfinite(srt["z"].to_numpy(dtype=float)).any()
+    from .motion.velocity import default_axes
+
+    side = "z" in default_axes(srt)       # the one axes rule: a z that changes
     x = srt["x"].to_numpy(dtype=float) * 1e6
     # 3D: side view (x against height z) shows the approach to the electrode; 2D: the image plane
     y = srt["z" if side else "y"].to_numpy(dtype=float) * 1e6

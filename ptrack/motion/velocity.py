@@ -555,8 +555,8 @@ def velocity_profile(df: pd.DataFrame, bins=10, z_range=None, axes=None, motion_
         ``v{a}_err`` (bootstrap over particles, or the model error with
         fewer than 3 particles), ``v{a}_err_model``, m/s.
     """
-    if "z" not in df.columns or not np.isfinite(df["z"].to_numpy(dtype=float)).any():
-        raise UserError("velocity profile against z needs heights, but z is NaN everywhere",
+    if "z" not in default_axes(df):       # the one axes rule: heights that change
+        raise UserError("velocity profile against z needs heights, but z is NaN or one value everywhere",
                         "track with a calibration stack (3D) or use particle_velocity for 2D tables")
     comps = _components(df, axes)
     R = check_motion_blur(motion_blur)
