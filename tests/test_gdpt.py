@@ -177,3 +177,25 @@ def test_heights_beside_in_metadata_and_implausible(tmp_path):
         for kw in ({"z_step": 1.0}, {"z_step": 1e-6, "z0": -6.0}, {"z_step": 1e-9}):
             with pytest.raises(UserError):
                 load_calibration(ij, **kw)
+
+
+@pytest.mark.parametrize("z", [-6e-6, -3e-6, 0.0, 4e-6, 8e-6])
+def test_symmetric_centre_of_defocused_images(z):
+    """The centre of a noisy defocused astigmatic image (independent optics: widths up to 6 S0) from its point
+    symmetry is within 0.1 px of the truth on average over sub-pixel places, and closer than the region's own
+    thresholded centroid (:func:`ptrack.gdpt.stack.find_beads`) is."""
+    from ptrack.gdpt.stack import find_beads, symmetric_centre
+
+    rng = np.random.default_rng(11)
+    err, err0 = [], []
+    for _ in range(24):
+        x, y = 60 + rng.uniform(-0.5, 0.5), 58 + rng.uniform(-0.5, 0.5)
+        img = gaussian_frame((120, 120), [x], [y], [z], 4000.0, 20.0, rng)
+        beads, p, _ = find_beads(img)
+        b = max(beads, key=lambda b: b["flux"])
+        cy, cx = symmetric_centre(p, b["y"], b["x"], b["r95"])
+        err.append((cx - x, cy - y))
+        err0.append((b["x"] - x, b["y"] - y))
+    err, err0 = np.array(err), np.array(err0)
+    assert np.all(np.abs(err.mean(0)) < 0.1), err.mean(0)
+    assert np.sqrt(np.mean(err ** 2)) <= np.sqrt(np.mean(err0 ** 2)) + 0.02, (err, err0)
