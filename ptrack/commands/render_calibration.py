@@ -3,9 +3,17 @@
 Writes DIR/calib.tif (one 16-bit page per height; ImageJ metadata: pixel size,
 z spacing; JSON in the 'Info' property), DIR/calib_z.csv (columns page, z in
 m; defocus = z - focal plane), DIR/calib_params.json and DIR/calib_montage.png.
-Defaults reproduce the seed's manual stage scan: +-60 um in 2 um steps (with
-the NA 0.75 objective a particle is practically invisible beyond a few um of
-defocus; choose --z-range for the depth you measure). SI units (m).
+Defaults: a stack ``ptrack track --calib`` can use as it is, for the default
+63x / NA 0.75 objective and camera: -3..+3 um in 0.1 um steps (beyond a few um
+of defocus the image of a particle with 5000 photons spreads into the noise:
+the seed's +-60 um stage scan in 2 um steps, --z-range -6e-5 6e-5 --z-step 2e-6,
+shows the bead only within about +-5 um), with a cylindrical-lens astigmatism
+of 1.2e-7 m (about 0.23 waves at the pupil edge) so that +z and -z look
+different (without it a particle above focus matches the page below focus as
+well: the sign of z is undefined), and 20000 photons per page (4 default
+movie frames averaged: a 5000-photon template's own noise biased z by 0.16 um
+and x by 0.45 px at 2.6 um of defocus). Render the movie with the same
+--astigmatism. SI units (m).
 """
 from __future__ import annotations
 
@@ -13,16 +21,23 @@ import numpy as np
 
 
 def add_arguments(p):
+    from sim.render.calibration import DEFAULT_ASTIGMATISM as ASTIGMATISM
+    from sim.render.calibration import DEFAULT_PHOTONS as PHOTONS
+    from sim.render.calibration import DEFAULT_Z_RANGE as Z_RANGE
+    from sim.render.calibration import DEFAULT_Z_STEP as Z_STEP
     from sim.render.options import add_optics_camera_arguments
 
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
-    p.add_argument("--z-range", type=float, nargs=2, metavar=("ZMIN", "ZMAX"), default=(-60e-6, 60e-6),
-                   help="lowest and highest particle height, m (default -6e-5 6e-5)")
-    p.add_argument("--z-step", type=float, default=2e-6, help="height step, m (default 2e-6)")
+    p.add_argument("--z-range", type=float, nargs=2, metavar=("ZMIN", "ZMAX"), default=Z_RANGE,
+                   help=f"lowest and highest particle height, m (default {Z_RANGE[0]:g} {Z_RANGE[1]:g}: every page "
+                        "shows the bead with the default optics and photons)")
+    p.add_argument("--z-step", type=float, default=Z_STEP, help=f"height step, m (default {Z_STEP:g})")
     p.add_argument("--shape", type=int, nargs=2, metavar=("H", "W"), default=None,
                    help="page height and width, pixels (default: holds the image at the largest defocus, up to 512)")
     p.add_argument("--focal-plane", type=float, default=0.0, metavar="Z", help="height of the focal plane, m (default 0)")
-    add_optics_camera_arguments(p)
+    # astigmatic by default: +z and -z pages differ (render the movie with the same --astigmatism); pages as
+    # bright as 4 default movie frames averaged
+    add_optics_camera_arguments(p, astigmatism=ASTIGMATISM, photons=PHOTONS)
 
 
 def run(a) -> int:

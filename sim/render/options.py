@@ -21,8 +21,13 @@ def _number(group, flag: str, default, what: str, fmt: str = "", kind=float) -> 
     group.add_argument(flag, type=kind, default=default, help=f"{what} (default {default:{fmt}})")
 
 
-def add_optics_camera_arguments(p: argparse.ArgumentParser) -> None:
-    """Optics and camera options (SI units; defaults: the seed's 63x / NA 0.75 objective and Zyla 5.5 camera)."""
+def add_optics_camera_arguments(p: argparse.ArgumentParser, astigmatism: float | None = None,
+                                photons: float | None = None) -> None:
+    """Optics and camera options (SI units; defaults: the seed's 63x / NA 0.75 objective and Zyla 5.5 camera).
+
+    ``astigmatism``, ``photons``: the defaults of ``--astigmatism`` (m) and ``--photons``, if not the optics' and
+    camera's own (``ptrack render-calibration`` gives both: its default stack tells +z from -z, and its pages
+    are as bright as a few movie frames averaged)."""
     # let negative numbers in scientific notation (e.g. --focal-plane -2e-6) be values, not options
     p._negative_number_matcher = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$")
     g = p.add_argument_group("optics (SI units)")
@@ -31,12 +36,14 @@ def add_optics_camera_arguments(p: argparse.ArgumentParser) -> None:
     _number(g, "--medium-index", _OPT.medium_index, "refractive index of the sample medium")
     _number(g, "--immersion-index", _OPT.immersion_index, "refractive index of the immersion medium")
     _number(g, "--magnification", _OPT.magnification, "magnification", "g")
-    g.add_argument("--astigmatism", type=float, default=_OPT.astigmatism,
-                   help="astigmatic wavefront amplitude at the pupil edge, m (cylindrical lens; 0 = none; e.g. 1.2e-7)")
+    ast = _OPT.astigmatism if astigmatism is None else float(astigmatism)
+    g.add_argument("--astigmatism", type=float, default=ast,
+                   help="astigmatic wavefront amplitude at the pupil edge, m (cylindrical lens; 0 = none; e.g. 1.2e-7; "
+                        f"default {ast:g})")
     g.add_argument("--radius", type=float, default=None, help="particle radius, m (default: the table's 'radius' column, else a point source)")
     c = p.add_argument_group("camera and light")
     _number(c, "--pixel-pitch", _CAM.pixel_pitch, "camera pixel pitch, m", "g")
-    _number(c, "--photons", _CAM.photons, "photons per particle per exposure (brightfield: removed from the background)", "g")
+    _number(c, "--photons", _CAM.photons if photons is None else float(photons), "photons per particle per exposure (brightfield: removed from the background)", "g")
     _number(c, "--background", _CAM.background, "background photons per pixel per exposure", "g")
     _number(c, "--qe", _CAM.quantum_efficiency, "quantum efficiency")
     _number(c, "--read-noise", _CAM.read_noise, "read noise, e- rms")
