@@ -238,9 +238,10 @@ class _Scene:
         self.substeps = S
         self.frame_interval = frame_interval_of(table)
         self.exposure = float(self.camera.exposure) if self.camera.exposure else self.frame_interval
-        if self.exposure > self.frame_interval * (1 + 1e-9) and len(np.unique(table["frame"])) > 1:
-            raise UserError(f"exposure {self.exposure:g} s is longer than the frame interval {self.frame_interval:g} s",
-                            "give an exposure <= the frame interval")
+        if len(np.unique(table["frame"])) > 1:   # (one frame has only the nominal 1 s interval)
+            from ptrack.motion.tracks import motion_blur_from_exposure
+
+            motion_blur_from_exposure(self.exposure, self.frame_interval)   # the one rule: 0 <= exposure <= interval
 
         self.x_px = table["x"].to_numpy() / self.pixel
         self.y_px = table["y"].to_numpy() / self.pixel
