@@ -170,13 +170,14 @@ def test_interaction_sections_go_to_the_dem_engine(tmp_path, monkeypatch):
     from sim.run import run_scene
     seen = {}
 
-    def fake_run_dem(scene, out_dir, resume=False, progress=True):
-        seen.update(scene=scene, out_dir=out_dir, resume=resume)
+    def fake_run_dem(scene, out_dir, resume=False, progress=True, threads=None):
+        seen.update(scene=scene, out_dir=out_dir, resume=resume, threads=threads)
         return "dem"
 
     monkeypatch.setattr(sim.dem, "run_dem", fake_run_dem)
     assert run_scene(sc, tmp_path, progress=False) == "dem"
-    assert seen["scene"].interactions is sc.interactions
+    assert seen["scene"].interactions is sc.interactions and seen["threads"] is None
+    assert run_scene(sc, tmp_path, progress=False, threads=2) == "dem" and seen["threads"] == 2
     with pytest.raises(UserError, match="contact.colour"):
         raw["contact"] = {"colour": 1}
         scene_from_dict(raw)
