@@ -114,7 +114,11 @@ def case(name: str, quick: bool) -> dict:
                 "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
     elif name == "calibration +-60 um / 2 um, 64x64 (seed default)":
         with tempfile.TemporaryDirectory() as d:
-            render_calibration(d, progress=False)
+            # the seed's stack, given explicitly (render_calibration's own defaults are now -3..+3 um / 0.1 um)
+            from sim.render.camera import Camera
+            from sim.render.optics import Optics
+
+            render_calibration(d, -60e-6, 60e-6, 2e-6, optics=Optics(), camera=Camera(), progress=False)
         n = 61
         first, rest = None, None
     else:

@@ -39,7 +39,8 @@ def add_optics_camera_arguments(p: argparse.ArgumentParser, astigmatism: float |
     ast = _OPT.astigmatism if astigmatism is None else float(astigmatism)
     g.add_argument("--astigmatism", type=float, default=ast,
                    help="astigmatic wavefront amplitude at the pupil edge, m (cylindrical lens; 0 = none; e.g. 1.2e-7; "
-                        f"default {ast:g})")
+                        f"default {ast:g}; a movie and its calibration stack need the same value: "
+                        "render-calibration's default is 1.2e-7)")
     g.add_argument("--radius", type=float, default=None, help="particle radius, m (default: the table's 'radius' column, else a point source)")
     c = p.add_argument_group("camera and light")
     _number(c, "--pixel-pitch", _CAM.pixel_pitch, "camera pixel pitch, m", "g")
