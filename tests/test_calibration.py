@@ -10,6 +10,7 @@ import tifffile
 from ptrack.calibration import (build_calibration, check_pixel_size, load_calibration, locate_3d, locate_frame_3d,
                                 match_templates, read_calib_z)
 from ptrack.errors import UserError
+from ptrack.motion.truth import match_truth
 from ptrack.preprocess import prepare
 
 render = pytest.importorskip("sim.render")
@@ -19,6 +20,18 @@ CAMERA = render.Camera(photons=20000.0, background=15.0)
 PX = render.sample_pixel_size(OPTICS, CAMERA.pixel_pitch)
 Z = np.round(np.arange(-2e-6, 2.0001e-6, 0.1e-6), 12)
 STEP = 0.1e-6
+
+
+def _nearest_true(df, xs, ys):
+    """Each localisation's nearest true particle (any range) and its distance, px, by the one matching rule."""
+    found = pd.DataFrame({"frame": 0, "x_px": df["x_px"].to_numpy(float), "y_px": df["y_px"].to_numpy(float)})
+    truth = pd.DataFrame({"frame": 0, "x_px": np.asarray(xs, float), "y_px": np.asarray(ys, float)})
+    fi, ti = match_truth(found, truth, np.inf)
+    near = np.full(len(found), -1)
+    near[fi] = ti
+    dmin = np.hypot(found["x_px"].to_numpy() - truth["x_px"].to_numpy()[near],
+                    found["y_px"].to_numpy() - truth["y_px"].to_numpy()[near])
+    return near, dmin
 
 
 @pytest.fixture(scope="module")
@@ -165,11 +178,10 @@ def test_edge_cut_and_overlapping_defocused_images_no_spurious(calib):
     for f, frame in enumerate(render.render_frames(table, shape=(90, 120), optics=OPTICS, camera=cam, seed=21)):
         df = locate_3d(prepare(frame, bg_size=3 * calib.size), calib)
         assert len(df) == len(xs), df
-        d = np.hypot(df["x_px"].to_numpy()[:, None] - xs, df["y_px"].to_numpy()[:, None] - ys)
-        near = d.argmin(1)
+        near, dmin = _nearest_true(df, xs, ys)
         assert sorted(near) == list(range(len(xs))), df        # one detection per particle
         alone = (near == 0) | (near == 3)
-        assert d.min(1)[alone].max() < 0.5 and d.min(1).max() < 2.0, df
+        assert dmin[alone].max() < 0.5 and dmin.max() < 2.0, df
         # z: the overlapping pair is measured with its neighbour's fitted image removed (a few % of the depth)
         dz = np.abs(df["z"].to_numpy() - zs[near])
         assert dz.max() < 0.3e-6 and dz[alone].max() < 0.1e-6, df
@@ -266,9 +278,8 @@ def test_brightfield_movie_several_defocus_values(bf_calib):
     for frame in render.render_frames(table, shape=(140, 180), seed=7, **BF_KW):
         df = locate_3d(prepare_gdpt(frame, bf_calib, brightfield=True), bf_calib)
         assert len(df) == len(xs), df
-        d = np.hypot(df["x_px"].to_numpy()[:, None] - xs, df["y_px"].to_numpy()[:, None] - ys)
-        near = d.argmin(1)
-        assert sorted(near) == list(range(len(xs))) and d.min(1).max() < 0.6, df
+        near, dmin = _nearest_true(df, xs, ys)
+        assert sorted(near) == list(range(len(xs))) and dmin.max() < 0.6, df
         dz = np.abs(df["z"].to_numpy() - zs[near])
         assert np.all(dz < bounds[near]), (dz * 1e9, bounds[near] * 1e9)
 
@@ -296,12 +307,11 @@ def test_close_pair_at_different_heights(calib, sep_um, z1, z2, angle):
     good = 0
     for frame in render.render_frames(table, shape=(110, 130), optics=OPTICS, camera=cam, seed=int(sep_um * 100)):
         df = locate_3d(prepare(frame, bg_size=3 * calib.size), calib)
-        d = np.hypot(df["x_px"].to_numpy()[:, None] - xs, df["y_px"].to_numpy()[:, None] - ys)
-        near = d.argmin(1)
+        near, dmin = _nearest_true(df, xs, ys)
         dz = np.abs(df["z"].to_numpy() - zs[near])
         # whatever is reported sits on a particle (within 1.5 px = 150 nm) at its z (5 % of the 4 um depth),
         # or its window is left badly explained (chi2 > 4: the frame's models miss light there) and says so
-        ok = (d.min(1) < 1.5) & (dz < 0.2e-6)
+        ok = (dmin < 1.5) & (dz < 0.2e-6)
         assert np.all(ok | (df["chi2"].to_numpy() > 4)), (df, zs)
         good += len(df) == len(xs) and sorted(near) == list(range(len(xs)))
     assert good >= 3, good
@@ -362,11 +372,13 @@ def _calibration_cli_end_to_end(tmp_path, cal_args, optics):
     if not (tmp_path / "t.parquet").exists():
         return zs, np.full(4, np.nan)
     med = read_table(tmp_path / "t.parquet").groupby("particle")[["x_px", "y_px", "z"]].median()
-    got = []
-    for x, y in zip(xs, ys):
-        d = np.hypot(med["x_px"].to_numpy() - x - 0.75, med["y_px"].to_numpy() - y)
-        got.append(med["z"].to_numpy()[int(np.argmin(d))] if d.size and d.min() < 3.0 else np.nan)
-    return zs, np.array(got)
+    # each true particle's nearest track (median position) within 3 px, by the one matching rule
+    truth = pd.DataFrame({"frame": 0, "x_px": np.asarray(xs, float) + 0.75, "y_px": np.asarray(ys, float)})
+    tracks = pd.DataFrame({"frame": 0, "x_px": med["x_px"].to_numpy(float), "y_px": med["y_px"].to_numpy(float)})
+    ti, mi = match_truth(truth, tracks, 3.0)
+    got = np.full(len(truth), np.nan)
+    got[ti] = med["z"].to_numpy()[mi]
+    return zs, got
 
 
 @pytest.mark.slow
@@ -405,9 +417,11 @@ def test_xy_unbiased_at_every_defocus(astigmatism, page, z_range):
             img = next(render.calibration_images([zb], shape=(80, 80), optics=optics, camera=cam, position=(x, y),
                                                  seed=int(rng.integers(1 << 30))))
             df = locate_frame_3d(img, cal)
-            d = np.hypot(df["x_px"] - x, df["y_px"] - y).to_numpy()
-            assert d.size and d.min() < 2.0, (zb, df)
-            i = int(np.argmin(d))
+            ti, fi = match_truth(pd.DataFrame({"frame": [0], "x_px": [x], "y_px": [y]}),
+                                 pd.DataFrame({"frame": 0, "x_px": df["x_px"].to_numpy(float),
+                                               "y_px": df["y_px"].to_numpy(float)}), 2.0)
+            assert len(fi) == 1, (zb, df)        # the particle's nearest localisation, within 2 px
+            i = int(fi[0])
             err.append((df["x_px"].iloc[i] - x, df["y_px"].iloc[i] - y))
         mean = np.mean(err, axis=0)
         assert np.all(np.abs(mean) < 0.1), (zb, mean)

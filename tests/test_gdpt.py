@@ -10,11 +10,11 @@ import numpy as np
 import pandas as pd
 import pytest
 import tifffile
-from scipy.spatial import cKDTree
 from scipy.special import erf
 
 from ptrack.calibration import build_calibration, load_calibration, locate_frame_3d
 from ptrack.errors import UserError
+from ptrack.motion.truth import match_truth
 
 S0, C, D = 1.3, 3e-6, 2e-6        # px, m, m
 PX = 1e-7                          # m per pixel
@@ -43,11 +43,13 @@ def gaussian_frame(shape, xs, ys, zs, photons, bg, rng):
 
 
 def _score(df, xs, ys, zs, r=2.0):
+    """(true particles with a localisation within r px, z errors of those, localisations) by the one rule."""
     if len(df) == 0:
         return 0, np.array([]), 0
-    d, i = cKDTree(df[["x_px", "y_px"]].to_numpy()).query(np.column_stack([xs, ys]))
-    ok = d < r
-    return int(ok.sum()), df["z"].to_numpy()[i[ok]] - np.asarray(zs)[ok], len(df)
+    truth = pd.DataFrame({"frame": 0, "x_px": np.asarray(xs, float), "y_px": np.asarray(ys, float)})
+    found = pd.DataFrame({"frame": 0, "x_px": df["x_px"].to_numpy(float), "y_px": df["y_px"].to_numpy(float)})
+    ti, fi = match_truth(truth, found, r)        # each true particle to its nearest localisation (roles swapped)
+    return len(ti), df["z"].to_numpy()[fi] - np.asarray(zs)[ti], len(df)
 
 
 @pytest.mark.parametrize("half", [10e-6, 20e-6, 30e-6])

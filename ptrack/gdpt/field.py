@@ -52,6 +52,7 @@ import numpy as np
 import pandas as pd
 
 from ..errors import UserError
+from ..motion.truth import match_truth
 
 __all__ = ["FieldCalibration", "BASES", "field_basis", "read_beads", "build_field_calibration",
            "load_field_calibration", "correct_z", "locate_frame_field"]
@@ -290,16 +291,15 @@ def read_beads(stack, z, calib, tolerance: float | None = None, **locate_options
         if not len(df):
             continue
         px, py, pz = (df[c].to_numpy(np.float64) for c in ("x_px", "y_px", "z"))
-        d = np.hypot(px[None, :] - bxy[:, 0:1], py[None, :] - bxy[:, 1:2])          # (B, n)
-        near = np.argmin(d, axis=1)
-        for b in range(B):
-            if rank in rej[b] or d[b, near[b]] > tol:
+        # each bead its mutually nearest detection within tol (a detection nearer to another bead is that
+        # bead's), by the one matching rule
+        found = pd.DataFrame({"frame": 0, "x_px": px, "y_px": py})
+        beads = pd.DataFrame({"frame": 0, "x_px": bxy[:, 0], "y_px": bxy[:, 1]})
+        for i, b in zip(*match_truth(found, beads, tol, mutual=True)):
+            if rank in rej[b]:
                 continue
-            # a detection nearer to another bead is that bead's
-            if np.argmin(d[:, near[b]]) != b:
-                continue
-            xy[b, k] = (px[near[b]], py[near[b]])
-            zr[b, k] = pz[near[b]]
+            xy[b, k] = (px[i], py[i])
+            zr[b, k] = pz[i]
     return xy, zr
 
 
