@@ -109,7 +109,7 @@ def read_calib_z(path, n_pages: int) -> np.ndarray:
     out[page] = z
     if np.abs(out).max() > 0.01:
         raise UserError(f"{path}: z values up to {np.abs(out).max():g} look like micrometres, not metres",
-                        "give z in metres (e.g. 2e-6 for 2 um)")
+                        "give z in metres (e.g. 2e-6 for 2 µm)")
     return out
 
 

@@ -59,9 +59,9 @@ def run(a) -> int:
         H, W = imgs[0].shape
         h = min(H, W, 256) // 2
         imgs = [im[H // 2 - h:H // 2 + h, W // 2 - h:W // 2 + h] for im in imgs]
-        png = save_montage(imgs, [f"z = {z[k] * 1e6:+.2f} um" for k in pages], out / "calib_montage.png",
-                           title=f"calibration stack (z in um; central {2 * h} x {2 * h} px, smoothed)", smooth=True)
-        print(f"rendered {len(z)} calibration planes from {z[0] * 1e6:+.2f} to {z[-1] * 1e6:+.2f} um")
+        png = save_montage(imgs, [f"z = {z[k] * 1e6:+.2f} µm" for k in pages], out / "calib_montage.png",
+                           title=f"calibration stack (z in µm; central {2 * h} x {2 * h} px, smoothed)", smooth=True)
+        print(f"rendered {len(z)} calibration planes from {z[0] * 1e6:+.2f} to {z[-1] * 1e6:+.2f} µm")
         for k, v in paths.items():
             print(f"  {k}: {v}")
         print(f"  montage: {png}")

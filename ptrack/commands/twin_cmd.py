@@ -95,12 +95,12 @@ def run(args) -> int:
                    calibrate=args.calibrate)
     p = res["parameters"]
     print(f"{args.movie}: {p['n_tracks']} tracks; inferred ({p['inferred']} from D_xy = "
-          f"{_pm(p['D']['xy'], p['D_err']['xy'], 1e12, 'um^2/s')}, wall ratio {p['wall_ratio']:.4g}):")
+          f"{_pm(p['D']['xy'], p['D_err']['xy'], 1e12, 'µm²/s')}, wall ratio {p['wall_ratio']:.4g}):")
     print(f"  radius    {_pm(res['radius_m'], res['radius_err_m'], 1e9, 'nm')}")
     print(f"  viscosity {_pm(res['viscosity_Pa_s'], res['viscosity_err_Pa_s'], 1e3, 'mPa s')}")
     if res["zeta_V"] is not None:
         print(f"  zeta      {_pm(res['zeta_V'], res['zeta_err_V'], 1e3, 'mV')}  (Henry f = {p['henry_f']:.4f}; "
-              f"v_ep = {p['v_electrophoretic_m_s'] * 1e6:.4g} um/s)")
+              f"v_ep = {p['v_electrophoretic_m_s'] * 1e6:.4g} µm/s)")
         print(f"  charge    {_pm(res['charge_C'], res['charge_err_C'], 1 / 1.602176634e-19, 'e')}")
     for h in res["calibration_history"]:
         b = ", ".join(f"{k} x{v[0]:.4g} +- {v[0] * v[1]:.2g}" for k, v in h["bias"].items())

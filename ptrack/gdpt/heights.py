@@ -107,12 +107,12 @@ def check_heights(z, what: str, calib=None):
     zmax = float(np.abs(z).max())
     if zmax > MAX_ABS_Z:
         raise UserError(f"calibration heights from {what} reach {zmax:g} m, beyond any objective's range",
-                        "give heights in metres (a 2 um step is 2e-6; --calib-z0 in m, e.g. -10e-6)")
+                        "give heights in metres (a 2 µm step is 2e-6; --calib-z0 in m, e.g. -10e-6)")
     if calib is None or not calib.pixel_size or len(calib.templates) < 2:
         return
     sizes = np.array([t.shape[0] for t in calib.templates], float)
     grow = (sizes.max() - sizes.min()) / 2 / TEMPLATE_SCALE * calib.pixel_size     # 95 % light radius, m
     if calib.depth > 0 and grow / calib.depth > 3.0:
-        raise UserError(f"calibration heights from {what} span {calib.depth * 1e6:.3g} um while the particle image "
-                        f"grows by {grow * 1e6:.3g} um: the step is too small for these optics",
-                        "give the stage step in metres (e.g. --calib-step 2e-6 for 2 um)")
+        raise UserError(f"calibration heights from {what} span {calib.depth * 1e6:.3g} µm while the particle image "
+                        f"grows by {grow * 1e6:.3g} µm: the step is too small for these optics",
+                        "give the stage step in metres (e.g. --calib-step 2e-6 for 2 µm)")

@@ -502,7 +502,7 @@ def rejected_summary(per_bead, z) -> dict:
             reasons = sorted({b["why"][k] for b in per_bead if b["why"][k]}) or ["no bead"]
             bad[k] = "; ".join(reasons)
     if bad:
-        items = ", ".join(f"{k} (z = {z[k] * 1e6:+.2f} um: {r})" for k, r in list(bad.items())[:8])
+        items = ", ".join(f"{k} (z = {z[k] * 1e6:+.2f} µm: {r})" for k, r in list(bad.items())[:8])
         more = f" and {len(bad) - 8} more" if len(bad) > 8 else ""
         warnings.warn(f"calibration pages rejected: {items}{more}", stacklevel=3)
     return bad

@@ -154,9 +154,9 @@ def page_shape_for(z, optics: Optics, camera: Camera, focal_plane: float = 0.0, 
     fits = np.array([image_diameter_px(optics, pixel, d, radius) <= min(H, W) for d in dz])
     if not fits.all():
         lim = float(dz[fits].max()) if fits.any() else 0.0
-        warnings.warn(f"calibration pages of {H} x {W} px cut the particle image beyond {lim * 1e6:.3g} um of "
+        warnings.warn(f"calibration pages of {H} x {W} px cut the particle image beyond {lim * 1e6:.3g} µm of "
                       f"defocus ({int((~fits).sum())} of {len(dz)} pages; the image is {need:.0f} px across at "
-                      f"{dz.max() * 1e6:.3g} um): those pages will be rejected by the calibration",
+                      f"{dz.max() * 1e6:.3g} µm): those pages will be rejected by the calibration",
                       stacklevel=3)
     return H, W
 

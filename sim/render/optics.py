@@ -254,9 +254,9 @@ def patch_size(optics: Optics, pixel: float, max_defocus: float, max_radius: flo
     n = int(math.ceil(2.0 * r / pixel)) + 2
     if n > MAX_PATCH:
         # e.g. --astigmatism 0.5 (meant in waves, read as 0.5 m of wavefront): a patch of ~1e9 px a side
-        raise UserError(f"a particle image {n} px across ({2 * r * 1e6:.3g} um: defocus {abs(max_defocus) * 1e6:.3g} um, "
+        raise UserError(f"a particle image {n} px across ({2 * r * 1e6:.3g} µm: defocus {abs(max_defocus) * 1e6:.3g} µm, "
                         f"astigmatism {optics.astigmatism:g} m, NA {optics.na:g}) exceeds the {MAX_PATCH} px limit",
-                        "give astigmatism in m of wavefront (e.g. 1.2e-7, not waves) and heights in m within tens of um "
+                        "give astigmatism in m of wavefront (e.g. 1.2e-7, not waves) and heights in m within tens of µm "
                         "of the focal plane")
     n = max(n, 16)
     n = sfft.next_fast_len(n, real=True)

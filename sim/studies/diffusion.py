@@ -226,7 +226,7 @@ def run(args) -> int:
                     integrator=args.integrator, frame_interval=args.frame_interval)
     paths = write_outputs(res, out, args.json)
     print(f"Diffusion study: {reps} x {args.particles} particles x {frames} frames per case, {args.integrator} integrator, "
-          f"CVE estimator over x, y, z (D in um^2/s)")
+          f"CVE estimator over x, y, z (D in µm²/s)")
     print(f"{'mu (Pa s)':>10} {'R (nm)':>8} {'D_SE':>12} {'D_sim':>12} {'95% CI':>27} {'err %':>7} covers")
     for c in res["cases"]:
         lo, hi = c["D_ci95"]

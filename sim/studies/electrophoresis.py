@@ -248,7 +248,7 @@ def run(args) -> int:
     paths = write_outputs(res, args.out or "study_electrophoresis", args.json)
     s = res["summary"]
     print("Electrophoresis study: T = 0, forward Euler (phi = 0), piecewise drag; zeta = -50 mV, R/lambda_D = 2; "
-          "velocities in um/s; Pe with 4 pi (seed eq. 3.37's 6 pi is 1.5x too high)")
+          "velocities in µm/s; Pe with 4 pi (seed eq. 3.37's 6 pi is 1.5x too high)")
     print(f"{'R (nm)':>7} {'mu':>7} {'eps':>4} {'E (V/m)':>8} {'v_sim':>12} {'v_Henry':>12} {'Re':>9} {'Pe':>9} "
           f"{'err_H':>9} {'err_SF':>9} {'err_bal':>9}")
     for c in res["cases"]:

@@ -162,7 +162,7 @@ def run(args) -> int:
                     workers=args.workers, desc="hamaker")
     print("Hamaker's law, perfect sticking: deposited number per area vs t, slope vs C_s v_H "
           "(Pe = v_H R / D_SE with 4 pi; the seed's eq. 3.37 has 6 pi)")
-    print(f"{'E (V/m)':>9} {'Pe':>7} {'v_H (um/s)':>11} {'C_s (1/m^3)':>12} {'slope sim':>11} {'C_s v_H':>11} "
+    print(f"{'E (V/m)':>9} {'Pe':>7} {'v_H (µm/s)':>11} {'C_s (1/m^3)':>12} {'slope sim':>11} {'C_s v_H':>11} "
           f"{'rel err':>8} {'deposited':>9}")
     for r in res:
         print(f"{r['field']:9.3g} {r['pe']:7.2f} {r['v_h'] * 1e6:11.3f} {r['c_s']:12.4g} {r['slope_sim']:11.4g} "
@@ -179,7 +179,7 @@ def run(args) -> int:
             ax.plot(t * 1e3, np.asarray(r["n_per_area"]) / 1e12, label=f"sim, Pe = {r['pe']:.1f}")
             ax.plot(t * 1e3, (r["slope_theory"] * t + r["fit_intercept"]) / 1e12, "k--", lw=0.8)
         ax.set_xlabel("t (ms)")
-        ax.set_ylabel("deposited per area (1/um^2)")
+        ax.set_ylabel("deposited per area (1/µm²)")
         ax.set_title("Hamaker's law: dashed = slope C_s v_H")
         ax.legend()
         with atomic_output(out / "hamaker.png", None) as tmp:
