@@ -152,7 +152,17 @@ def _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, ext
     for k in range(D_SIZE):
         diag[k] = 0.0
     _external(pos, vel, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt, force)
-    if model != CONTACT_NONE or pair_laws.shape[0] > 0:
+    _interaction_forces(pos, vel, omega, radius, mass, charge, model, cp, cpw, pair_laws, wall_laws, rotation,
+                        walls, whist, start, nbj, shift, hist, force, torque, dt, diag, fbuf, tbuf, dbuf,
+                        model != CONTACT_NONE or pair_laws.shape[0] > 0)
+
+
+@njit(cache=True)
+def _interaction_forces(pos, vel, omega, radius, mass, charge, model, cp, cpw, pair_laws, wall_laws, rotation,
+                        walls, whist, start, nbj, shift, hist, force, torque, dt, diag, fbuf, tbuf, dbuf, pairs):
+    """Add the pair forces (``pairs``: contact or non-contact laws on; threaded with per-thread buffers
+    when ``fbuf`` has more than one) and the wall contact and wall laws to ``force``, ``torque``."""
+    if pairs:
         if fbuf.shape[0] > 1:
             pair_forces_parallel(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist, force, torque,
                                  model, cp, pair_laws, rotation, dt, diag, fbuf, tbuf, dbuf)
@@ -393,17 +403,9 @@ def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
                 nbuild += 1
             _begin_forces(vel, radius, charge, gamma, fconst, drag_mode, extp, seed, step, dt, rotation, force,
                           torque, diag)
-            if pairs:
-                if fbuf.shape[0] > 1:
-                    pair_forces_parallel(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist, force,
-                                         torque, model, cp, pair_laws, rotation, dt, diag, fbuf, tbuf, dbuf)
-                else:
-                    pair_forces(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist, force, torque,
-                                model, cp, pair_laws, rotation, dt, diag)
-            if walls.shape[0] > 0 and model != CONTACT_NONE:
-                wall_forces(pos, vel, omega, radius, mass, walls, whist, force, torque, model, cpw, rotation, dt, diag)
-            if walls.shape[0] > 0 and wall_laws.shape[0] > 0:
-                wall_law_forces(pos, radius, charge, walls, wall_laws, force)
+            _interaction_forces(pos, vel, omega, radius, mass, charge, model, cp, cpw, pair_laws, wall_laws,
+                                rotation, walls, whist, start, nbj, shift, hist, force, torque, dt, diag, fbuf,
+                                tbuf, dbuf, pairs)
             _half_kick(vel, omega, force, torque, mass, inertia, hdt, rotation)
             t_done += dt
         elif integrator == OVERDAMPED:

@@ -229,16 +229,19 @@ def _scan(pos, radius, cutoff, skin, lo, length, periodic, ncell, cell_of, cell_
 
 
 @njit(cache=True)
-def _build(pos, radius, cutoff, skin, lo, length, periodic):
-    n = pos.shape[0]
+def _cell_size(radius, cutoff, skin):
+    """Cell edge of the neighbour grid (m): the largest contact distance 2 max(radius) or the pair cut-off, plus the skin."""
     rmax = 0.0
-    for i in range(n):
+    for i in range(radius.shape[0]):
         if radius[i] > rmax:
             rmax = radius[i]
-    cell_size = 2.0 * rmax
-    if cutoff > cell_size:
-        cell_size = cutoff
-    cell_size += skin
+    return max(2.0 * rmax, cutoff) + skin
+
+
+@njit(cache=True)
+def _build(pos, radius, cutoff, skin, lo, length, periodic):
+    n = pos.shape[0]
+    cell_size = _cell_size(radius, cutoff, skin)
     ncell, cell_of, cell_start, order = _bin_particles(pos, cell_size, lo, length, periodic)
     start = np.zeros(n + 1, dtype=np.int64)
     dummy_j = np.empty(0, dtype=np.int64)
@@ -347,14 +350,7 @@ def cell_order(pos, radius, cutoff, skin, lo, length, periodic, ids):
     perm = np.empty(n, dtype=np.int64)
     if n == 0:
         return perm
-    rmax = 0.0
-    for i in range(n):
-        if radius[i] > rmax:
-            rmax = radius[i]
-    cell_size = 2.0 * rmax
-    if cutoff > cell_size:
-        cell_size = cutoff
-    cell_size += skin
+    cell_size = _cell_size(radius, cutoff, skin)
     ncell, cell_of, counts, _ = _bin_particles(pos, cell_size, lo, length, periodic)
     slot_of = np.empty(n, dtype=np.int64)
     for q in range(n):

@@ -431,10 +431,23 @@ def profile_centres(img, rows, cols, half, x0=None, y0=None, noise=1.0, shot: fl
 
 
 @nb.njit(cache=True)
+def _annulus_sums(img, xc, yc, R, sums, cnt):
+    # sum and pixel count of img in 1 px annuli (b = round(r)) about (xc, yc), out to R px
+    h, w = img.shape
+    rc = int(round(yc))
+    cc = int(round(xc))
+    for i in range(max(0, rc - R), min(h, rc + R + 1)):
+        for j in range(max(0, cc - R), min(w, cc + R + 1)):
+            b = int(math.sqrt((j - xc) ** 2 + (i - yc) ** 2) + 0.5)
+            if b <= R:
+                sums[b] += img[i, j]
+                cnt[b] += 1
+
+
+@nb.njit(cache=True)
 def _extent_all(img, x0, y0, noise, rmin, rmax, k_sig, out):
     # per image: the largest radius (px) whose 1 px annulus mean differs from zero by more than k_sig
     # standard errors, within rmax; rmin when none does
-    h, w = img.shape
     for k in range(x0.shape[0]):
         R = int(rmax[k])
         sums = np.zeros(R + 1)
@@ -444,14 +457,7 @@ def _extent_all(img, x0, y0, noise, rmin, rmax, k_sig, out):
         if not (math.isfinite(xc) and math.isfinite(yc)):
             out[k] = rmin[k]
             continue
-        rc = int(round(yc))
-        cc = int(round(xc))
-        for i in range(max(0, rc - R), min(h, rc + R + 1)):
-            for j in range(max(0, cc - R), min(w, cc + R + 1)):
-                b = int(math.sqrt((j - xc) ** 2 + (i - yc) ** 2) + 0.5)
-                if b <= R:
-                    sums[b] += img[i, j]
-                    cnt[b] += 1
+        _annulus_sums(img, xc, yc, R, sums, cnt)
         e = 0
         for b in range(R + 1):
             if cnt[b] > 0 and abs(sums[b] / cnt[b]) > k_sig * noise[k] / math.sqrt(cnt[b]):
@@ -485,21 +491,13 @@ def image_extent(img, x0, y0, noise, rmin, rmax, k_sig: float = 4.0):
 def _dip_all(img, x0, y0, noise, rmax, k_sig, out):
     # per image (particles positive): an annulus of the opposite sign, k_sig standard errors below zero
     # and below the level just outside it, at 1.5 px or more from the centre
-    h, w = img.shape
     for k in range(x0.shape[0]):
         R = int(rmax[k])
         sums = np.zeros(R + 1)
         cnt = np.zeros(R + 1)
         xc = x0[k]
         yc = y0[k]
-        rc = int(round(yc))
-        cc = int(round(xc))
-        for i in range(max(0, rc - R), min(h, rc + R + 1)):
-            for j in range(max(0, cc - R), min(w, cc + R + 1)):
-                b = int(math.sqrt((j - xc) ** 2 + (i - yc) ** 2) + 0.5)
-                if b <= R:
-                    sums[b] += img[i, j]
-                    cnt[b] += 1
+        _annulus_sums(img, xc, yc, R, sums, cnt)
         found = False
         for b in range(2, R - 1):
             if cnt[b] == 0 or cnt[b + 2] == 0:
