@@ -94,6 +94,15 @@ def _nn_steps(frames, x, y, max_pairs: int = 20000):
     end = np.r_[start[1:], len(fs)]
     dx, dy = [], []
     n = 0
+    trees = {}
+
+    def tree(k, pts):
+        # each frame's tree serves two pairs (as the later frame of one, the earlier of the next)
+        if k not in trees:
+            trees.clear()
+            trees[k] = cKDTree(pts, balanced_tree=False, compact_nodes=False)
+        return trees[k]
+
     for k in range(len(ufr) - 1):
         if ufr[k + 1] != ufr[k] + 1:
             continue
@@ -101,8 +110,9 @@ def _nn_steps(frames, x, y, max_pairs: int = 20000):
         b = np.c_[xs[start[k + 1]:end[k + 1]], ys[start[k + 1]:end[k + 1]]]
         if len(a) < 1 or len(b) < 1:
             continue
-        _, ia = cKDTree(b).query(a)
-        _, ib = cKDTree(a).query(b)
+        ta = tree(k, a)
+        _, ib = ta.query(b)
+        _, ia = tree(k + 1, b).query(a)
         mutual = ib[ia] == np.arange(len(a))
         dx.append(b[ia[mutual], 0] - a[mutual, 0])
         dy.append(b[ia[mutual], 1] - a[mutual, 1])
@@ -156,20 +166,21 @@ def link(features: pd.DataFrame, search_range: float | None = None, memory: int 
             raise UserError("3D linking needs the pixel size", "give --pixel-size")
         feats = feats[np.isfinite(feats["z"].to_numpy())].reset_index(drop=True)
         feats["z_px"] = feats["z"] / pixel_size
-    nn = nearest_neighbour_distance(feats)
     # The refined range is NOT capped by the particle spacing: a range shorter than the longest
     # steps drops exactly those steps and biases D low (in 2D the steps beyond 2.5 step standard
     # deviations carry 18 % of the MSD); trackpy's adaptive search shrinks the range only inside
     # the subnetworks that would otherwise be too large.
     cap = 80.0
-    sr = float(search_range) if search_range is not None else min(max(0.45 * nn, 5.0), 50.0)
+    sr = float(search_range) if search_range is not None else None
     if search_range is None:
         # first range from the steps of mutual nearest neighbours between consecutive frames (no range
         # needed): the refinement below then usually confirms it after one link instead of growing it
-        # over several
+        # over several; without such steps, from the typical nearest-neighbour distance
         ndx, ndy = _nn_steps(feats["frame"].to_numpy(), feats["x_px"].to_numpy(float), feats["y_px"].to_numpy(float))
         if len(ndx):
             sr = float(np.clip(max(_robust_step(ndx), _robust_step(ndy)) + 1.0, 3.0, cap))
+        else:
+            sr = min(max(0.45 * nearest_neighbour_distance(feats), 5.0), 50.0)
     pos = ["y_px", "x_px"]
     rng_ = (sr, sr)
     if three_d:

@@ -12,6 +12,13 @@ inverse Fisher information at the estimate is each particle's uncertainty
 (``sigma_x``, ``sigma_y``). For brightfield images (no Poisson model after
 inversion) a least-squares fit of the same model is used.
 
+Cost: one pass over a fit window per accepted step (objective, score and
+Fisher matrix together; the last step, below the tolerance, is taken
+without one), 5x5 to 17x17 systems by an in-place Cholesky, no allocation
+per spot. The least-squares path uses that the model is separable in x and
+y: its Gauss-Newton matrix comes from 1-D Gram matrices of the erf
+profiles, and the pixel loop only forms the residual's row sums.
+
 Pixel coordinates follow trackpy: ``x`` along columns, ``y`` along rows, the
 centre of pixel (0, 0) at (0, 0).
 """
@@ -34,44 +41,85 @@ _XTOL = 1e-3
 _RTOL = 0.05
 
 
-@nb.njit(cache=True)
-def _ls_sd(J, rss, npix, npar, ia):
-    # least-squares standard error of parameter ia: sqrt(rss / (n - p) * (J^-1)_ii) with J the Gauss-Newton
-    # matrix (J is not changed); 0 when J is singular
-    P = J.shape[0]
-    e = np.zeros(P)
-    e[ia] = 1.0
-    A = J.copy()
-    for a in range(P):
-        A[a, a] += 1e-12
-    try:
-        col = np.linalg.solve(A, e)
-    except Exception:
-        return 0.0
-    v = col[ia] * rss / max(npix - npar, 1)
-    return math.sqrt(v) if v > 0 else 0.0
+@nb.njit(cache=True, inline="always")
+def _chol(A, P):
+    # in-place Cholesky factor (lower triangle) of the P x P leading block of A; False when A is not
+    # numerically positive definite
+    for j in range(P):
+        s = A[j, j]
+        for k in range(j):
+            s -= A[j, k] * A[j, k]
+        if not s > 0.0:
+            return False
+        d = math.sqrt(s)
+        A[j, j] = d
+        for i in range(j + 1, P):
+            s = A[i, j]
+            for k in range(j):
+                s -= A[i, k] * A[j, k]
+            A[i, j] = s / d
+    return True
+
+
+@nb.njit(cache=True, inline="always")
+def _chol_solve(L, b, x, P):
+    # x = A^-1 b from the Cholesky factor L of A (_chol)
+    for i in range(P):
+        s = b[i]
+        for k in range(i):
+            s -= L[i, k] * x[k]
+        x[i] = s / L[i, i]
+    for i in range(P - 1, -1, -1):
+        s = x[i]
+        for k in range(i + 1, P):
+            s -= L[k, i] * x[k]
+        x[i] = s / L[i, i]
+
+
+@nb.njit(cache=True, inline="always")
+def _chol_inv_diag(L, P, ia, y):
+    # (A^-1)_{ia, ia} = |L^-1 e_ia|^2 from the Cholesky factor L of A; y is scratch (length >= P)
+    s2 = 0.0
+    for i in range(P):
+        if i < ia:
+            y[i] = 0.0
+            continue
+        s = 1.0 if i == ia else 0.0
+        for k in range(ia, i):
+            s -= L[i, k] * y[k]
+        y[i] = s / L[i, i]
+        s2 += y[i] * y[i]
+    return s2
 
 
 @nb.njit(cache=True)
 def _erf_profile(n0, n, x, s, e, de_dx, de_ds):
-    # pixel-integrated unit Gaussian over pixels n0..n0+n-1 centred at x, width s
+    # pixel-integrated unit Gaussian over pixels n0..n0+n-1 centred at x, width s, and its derivatives in x
+    # and s; each pixel edge's erf and exp are computed once (an edge is shared by two pixels)
     inv = 1.0 / (_SQRT2 * s)
+    c2 = 1.0 / (2.0 * s * s)
+    k1 = 1.0 / (_SQRT2PI * s)
+    k2 = k1 / s
+    b = n0 - x - 0.5
+    eb = math.erf(b * inv)
+    gb = math.exp(-b * b * c2)
     for i in range(n):
-        p = n0 + i
-        a = (p - x + 0.5)
-        b = (p - x - 0.5)
-        ga = math.exp(-a * a / (2 * s * s))
-        gb = math.exp(-b * b / (2 * s * s))
-        e[i] = 0.5 * (math.erf(a * inv) - math.erf(b * inv))
-        de_dx[i] = -(ga - gb) / (_SQRT2PI * s)
-        de_ds[i] = -(a * ga - b * gb) / (_SQRT2PI * s * s)
+        a = b + 1.0
+        ea = math.erf(a * inv)
+        ga = math.exp(-a * a * c2)
+        e[i] = 0.5 * (ea - eb)
+        de_dx[i] = -(ga - gb) * k1
+        de_ds[i] = -(a * ga - b * gb) * k2
+        b = a
+        eb = ea
+        gb = ga
 
 
 @nb.njit(cache=True, inline="always")
 def _pixel_loglik(d, mu, rvar, poisson):
-    # one pixel's term of the fit objective, shared by the single and the joint fit: d = measured photons,
-    # mu = model photons. Poisson log-likelihood with the read-noise variance rvar added to both (sCMOS
-    # approximation; mu floored at 1e-9), or -(d - mu)^2 / 2 for least squares.
+    # one pixel's term of the fit objective: d = measured photons, mu = model photons. Poisson
+    # log-likelihood with the read-noise variance rvar added to both (sCMOS approximation; mu floored at
+    # 1e-9), or -(d - mu)^2 / 2 for least squares.
     if poisson:
         mu += rvar
         d += rvar
@@ -81,19 +129,6 @@ def _pixel_loglik(d, mu, rvar, poisson):
             return d * math.log(mu) - mu
         return -mu
     return -0.5 * (d - mu) ** 2
-
-
-@nb.njit(cache=True)
-def _objective(img, r0, r1, c0, c1, th, gain, offset, rvar, poisson, ex, ey, dxx, dxs, dyy, dys):
-    x, y, N, b, s = th[0], th[1], th[2], th[3], th[4]
-    _erf_profile(c0, c1 - c0 + 1, x, s, ex, dxx, dxs)
-    _erf_profile(r0, r1 - r0 + 1, y, s, ey, dyy, dys)
-    f = 0.0
-    for i in range(r1 - r0 + 1):
-        for j in range(c1 - c0 + 1):
-            mu = b + N * ex[j] * ey[i]
-            f += _pixel_loglik((img[r0 + i, c0 + j] - offset) / gain, mu, rvar, poisson)
-    return f
 
 
 @nb.njit(cache=True, inline="always")
@@ -110,31 +145,328 @@ def _border_mean(img, r0, nr, c0, nc, gain, offset):
     return bsum / max(nb_, 1)
 
 
-@nb.njit(cache=True, inline="always")
-def _spot_model(th, ex, ey, dxx, dxs, dyy, dys, i, j, dm):
-    # single-spot model photons at window pixel (i, j) for th = (x, y, N, b, s) from the current erf
-    # profiles; its derivatives d mu / d th go to dm. Shared by the Levenberg-Marquardt step and the
-    # covariance of _fit_one.
-    N = th[2]
-    mu = th[3] + N * ex[j] * ey[i]
-    dm[0] = N * dxx[j] * ey[i]
-    dm[1] = N * ex[j] * dyy[i]
-    dm[2] = ex[j] * ey[i]
-    dm[3] = 1.0
-    dm[4] = N * (dxs[j] * ey[i] + ex[j] * dys[i])
-    return mu
+@nb.njit(cache=True)
+def _group_objective(img, r0, nr, c0, nc, th, K, gain, offset, rvar, poisson, ex, ey, dxx, dxs, dyy, dys):
+    # log-likelihood (Poisson) or -RSS/2 of K Gaussians (x, y, N each) on a shared background and width
+    b = th[3 * K]
+    s = th[3 * K + 1]
+    for k in range(K):
+        _erf_profile(c0, nc, th[3 * k], s, ex[k], dxx[k], dxs[k])
+        _erf_profile(r0, nr, th[3 * k + 1], s, ey[k], dyy[k], dys[k])
+    f = 0.0
+    for i in range(nr):
+        for j in range(nc):
+            mu = b
+            for k in range(K):
+                mu += th[3 * k + 2] * ex[k, j] * ey[k, i]
+            f += _pixel_loglik((img[r0 + i, c0 + j] - offset) / gain, mu, rvar, poisson)
+    return f
 
 
 @nb.njit(cache=True)
-def _fit_one(img, r, c, half, sigma0, gain, offset, rvar, poisson, max_iter, out, cov):
-    h, w = img.shape
+def _work(K, n):
+    # scratch of a fit of up to K spots in windows of up to n pixels per side: the 1-D functions of the
+    # separable model along columns (FX) and rows (FY), row 3k + 0 / 1 / 2 = spot k's erf profile e, de/dx,
+    # de/ds, row 3K = 1 (the background); two (J, g) pairs (current and trial); the damped matrix, the
+    # step, the trial parameters, the per-pixel derivatives (Poisson path); the 1-D Gram matrices, the
+    # residual's row sums and the separable terms (coefficient, column function, row function, start of
+    # each parameter's terms) of the least-squares path
+    P = 3 * K + 2
+    Q = 3 * K + 1
+    T = 5 * K + 1
+    FX = np.ones((Q, n))
+    FY = np.ones((Q, n))
+    return (FX, FY, np.zeros((P, P)), np.zeros(P), np.zeros((P, P)), np.zeros(P), np.zeros((P, P)), np.zeros(P),
+            np.zeros(P), np.zeros(P), np.zeros((Q, Q)), np.zeros((Q, Q)), np.zeros(Q), np.zeros(T),
+            np.zeros(T, np.int64), np.zeros(T, np.int64), np.zeros(P + 1, np.int64))
+
+
+@nb.njit(cache=True, inline="always")
+def _profiles(th, K, r0, nr, c0, nc, FX, FY):
+    s = th[3 * K + 1]
+    for k in range(K):
+        _erf_profile(c0, nc, th[3 * k], s, FX[3 * k], FX[3 * k + 1], FX[3 * k + 2])
+        _erf_profile(r0, nr, th[3 * k + 1], s, FY[3 * k], FY[3 * k + 1], FY[3 * k + 2])
+
+
+@nb.njit(cache=True, inline="always")
+def _terms(th, K, TC, TA, TB, TP):
+    # the separable terms of each parameter's derivative d mu / d th_p as (coefficient TC, column function
+    # TA, row function TB), those of parameter p at TP[p]..TP[p+1]-1: x_k = N_k d_k(col) e_k(row),
+    # y_k = N_k e_k d_k, N_k = e_k e_k, background = 1 1, width = sum_k N_k (s_k e_k + e_k s_k); function
+    # index 3k + {0: e, 1: d, 2: s} of spot k, 3K for 1 (the rows of _work's FX, FY)
+    P = 3 * K + 2
+    t = 0
+    for k in range(K):
+        N = th[3 * k + 2]
+        TP[3 * k] = t
+        TC[t] = N
+        TA[t] = 3 * k + 1
+        TB[t] = 3 * k
+        t += 1
+        TP[3 * k + 1] = t
+        TC[t] = N
+        TA[t] = 3 * k
+        TB[t] = 3 * k + 1
+        t += 1
+        TP[3 * k + 2] = t
+        TC[t] = 1.0
+        TA[t] = 3 * k
+        TB[t] = 3 * k
+        t += 1
+    TP[3 * K] = t
+    TC[t] = 1.0
+    TA[t] = 3 * K
+    TB[t] = 3 * K
+    t += 1
+    TP[3 * K + 1] = t
+    for k in range(K):
+        N = th[3 * k + 2]
+        TC[t] = N
+        TA[t] = 3 * k + 2
+        TB[t] = 3 * k
+        t += 1
+        TC[t] = N
+        TA[t] = 3 * k
+        TB[t] = 3 * k + 2
+        t += 1
+    TP[P] = t
+
+
+@nb.njit(cache=True)
+def _eval_poisson(img, r0, nr, c0, nc, th, K, gain, offset, rvar, FX, FY, J, g, dm):
+    # Poisson log-likelihood f (read-noise shift), score g and Fisher information J at th, in one pass
+    # over the pixels. Returns (f, rss).
+    P = 3 * K + 2
+    _profiles(th, K, r0, nr, c0, nc, FX, FY)
+    for a in range(P):
+        g[a] = 0.0
+        for bb in range(P):
+            J[a, bb] = 0.0
+    f = 0.0
+    rss = 0.0
+    ig = 1.0 / gain
+    for i in range(nr):
+        for j in range(nc):
+            mu = th[3 * K]
+            ds_ = 0.0
+            for k in range(K):
+                N = th[3 * k + 2]
+                exj = FX[3 * k, j]
+                eyi = FY[3 * k, i]
+                e = exj * eyi
+                mu += N * e
+                dm[3 * k] = N * FX[3 * k + 1, j] * eyi
+                dm[3 * k + 1] = N * exj * FY[3 * k + 1, i]
+                dm[3 * k + 2] = e
+                ds_ += N * (FX[3 * k + 2, j] * eyi + exj * FY[3 * k + 2, i])
+            dm[3 * K] = 1.0
+            dm[3 * K + 1] = ds_
+            d = (img[r0 + i, c0 + j] - offset) * ig
+            rss += (d - mu) ** 2
+            m = mu + rvar
+            dd = d + rvar
+            if m < 1e-9:
+                m = 1e-9
+            if dd > 0:
+                f += dd * math.log(m) - m
+            else:
+                f -= m
+            wgt = 1.0 / m
+            res = dd * wgt - 1.0
+            for a in range(P):
+                g[a] += res * dm[a]
+                wa = wgt * dm[a]
+                for bb in range(a, P):
+                    J[a, bb] += wa * dm[bb]
+    for a in range(P):
+        for bb in range(a):
+            J[a, bb] = J[bb, a]
+    return f, rss
+
+
+@nb.njit(cache=True)
+def _eval_ls(img, r0, nr, c0, nc, th, K, gain, offset, FX, FY, J, g, Gx, Gy, rrow, TC, TA, TB, TP):
+    # the least-squares objective -RSS/2, its gradient g and the Gauss-Newton matrix J at th, using that
+    # the model is separable: every derivative is a sum of products of a column function and a row
+    # function (FX, FY: a spot's e, de/dx, de/ds; 1 for the background), so J is assembled from the 1-D
+    # Gram matrices Gx, Gy and the pixel loop only forms the residual's row sums (rrow). Returns (f, rss).
+    P = 3 * K + 2
+    Q = 3 * K + 1
+    _profiles(th, K, r0, nr, c0, nc, FX, FY)
+    bg = th[3 * K]
+    for a in range(P):
+        g[a] = 0.0
+    rss = 0.0
+    ig = 1.0 / gain
+    for i in range(nr):
+        for a in range(Q):
+            rrow[a] = 0.0
+        for j in range(nc):
+            mu = bg
+            for k in range(K):
+                mu += th[3 * k + 2] * FX[3 * k, j] * FY[3 * k, i]
+            r = (img[r0 + i, c0 + j] - offset) * ig - mu
+            rss += r * r
+            for a in range(Q):
+                rrow[a] += r * FX[a, j]
+        for k in range(K):
+            N = th[3 * k + 2]
+            eyi = FY[3 * k, i]
+            g[3 * k] += N * rrow[3 * k + 1] * eyi
+            g[3 * k + 1] += N * rrow[3 * k] * FY[3 * k + 1, i]
+            g[3 * k + 2] += rrow[3 * k] * eyi
+            g[3 * K + 1] += N * (rrow[3 * k + 2] * eyi + rrow[3 * k] * FY[3 * k + 2, i])
+        g[3 * K] += rrow[3 * K]
+    for a in range(Q):
+        for bb in range(a, Q):
+            sx = 0.0
+            for j in range(nc):
+                sx += FX[a, j] * FX[bb, j]
+            sy = 0.0
+            for i in range(nr):
+                sy += FY[a, i] * FY[bb, i]
+            Gx[a, bb] = sx
+            Gx[bb, a] = sx
+            Gy[a, bb] = sy
+            Gy[bb, a] = sy
+    _terms(th, K, TC, TA, TB, TP)
+    for p in range(P):
+        for q in range(p, P):
+            v = 0.0
+            for tp in range(TP[p], TP[p + 1]):
+                for tq in range(TP[q], TP[q + 1]):
+                    v += TC[tp] * TC[tq] * Gx[TA[tp], TA[tq]] * Gy[TB[tp], TB[tq]]
+            J[p, q] = v
+            J[q, p] = v
+    return -0.5 * rss, rss
+
+
+@nb.njit(cache=True, inline="always")
+def _evaluate(img, r0, nr, c0, nc, th, K, gain, offset, rvar, poisson, w, J, g):
+    if poisson:
+        return _eval_poisson(img, r0, nr, c0, nc, th, K, gain, offset, rvar, w[0], w[1], J, g, w[9])
+    return _eval_ls(img, r0, nr, c0, nc, th, K, gain, offset, w[0], w[1], J, g, w[10], w[11], w[12], w[13], w[14],
+                    w[15], w[16])
+
+
+@nb.njit(cache=True)
+def _lm(img, r0, nr, c0, nc, th, K, sigma0, gain, offset, rvar, poisson, max_iter, bound_pos, w, var):
+    # Levenberg-Marquardt damped Fisher scoring (Gauss-Newton for least squares) of K spots sharing
+    # background and width, th = (x_1, y_1, N_1, ..., x_K, y_K, N_K, background, width), started at th.
+    # Each trial point is evaluated once for the objective, the score and the Fisher matrix together, so
+    # an accepted step costs one pass over the window, and the last step (the centres move by less than
+    # the tolerance) is taken without one. var = diagonal of the inverse Fisher information at the
+    # result (scaled by the residual variance for least squares). bound_pos: trial centres must stay
+    # within 1 px of the window. Returns (converged, objective, iterations).
+    P = 3 * K + 2
+    J = w[2]
+    g = w[3]
+    Jt = w[4]
+    gt = w[5]
+    A = w[6]
+    step = w[7]
+    trial = w[8]
+    npix = nr * nc
+    f, rss = _evaluate(img, r0, nr, c0, nc, th, K, gain, offset, rvar, poisson, w, J, g)
+    lam = 1e-3
+    it = 0
+    converged = False
+    while it < max_iter:
+        it += 1
+        # converged when the centre moves by < _XTOL px: 1e-3 px is >= 20x below the bound of any spot we
+        # localise (0.02-0.1 px), and brightfield images with halos (not Gaussian) crawl below it for ~10
+        # more iterations; least squares stops at _RTOL of the standard error of the worst-determined
+        # centre when that is larger
+        tol = _XTOL
+        if not poisson:
+            for a in range(P):
+                for bb in range(P):
+                    A[a, bb] = J[a, bb]
+                A[a, a] += 1e-12
+            if _chol(A, P):
+                sdmin = 1e300
+                for k in range(K):
+                    v = _chol_inv_diag(A, P, 3 * k, gt) * rss / max(npix - P, 1)
+                    sdmin = min(sdmin, math.sqrt(v) if v > 0 else 0.0)
+                tol = max(_XTOL, _RTOL * sdmin)
+        improved = False
+        small = False
+        for _ in range(12):
+            for a in range(P):
+                for bb in range(P):
+                    A[a, bb] = J[a, bb]
+                A[a, a] += lam * J[a, a] + 1e-12
+            if not _chol(A, P):
+                lam *= 10.0
+                continue
+            _chol_solve(A, g, step, P)
+            bad = False
+            small = True
+            for a in range(P):
+                trial[a] = th[a] + step[a]
+            for k in range(K):
+                if trial[3 * k + 2] <= 0:
+                    bad = True
+                if bound_pos and (trial[3 * k] < c0 - 1 or trial[3 * k] > c0 + nc or trial[3 * k + 1] < r0 - 1
+                                  or trial[3 * k + 1] > r0 + nr):
+                    bad = True
+                if abs(step[3 * k]) >= tol or abs(step[3 * k + 1]) >= tol:
+                    small = False
+            s = trial[3 * K + 1]
+            if bad or s < 0.25 * sigma0 or s > 4.0 * sigma0 or (poisson and trial[3 * K] < -rvar):
+                small = False
+                lam *= 10.0
+                continue
+            if small:
+                # a step below the tolerance ends the fit: taken without evaluating it (the objective,
+                # the score and the Fisher matrix change by a negligible amount)
+                for a in range(P):
+                    th[a] = trial[a]
+                break
+            ft, rsst = _evaluate(img, r0, nr, c0, nc, trial, K, gain, offset, rvar, poisson, w, Jt, gt)
+            if ft >= f:
+                for a in range(P):
+                    th[a] = trial[a]
+                J, Jt = Jt, J
+                g, gt = gt, g
+                f = ft
+                rss = rsst
+                lam = max(lam * 0.1, 1e-7)
+                improved = True
+                break
+            lam *= 10.0
+        if not improved or small:
+            converged = True
+            break
+    # covariance: inverse Fisher information at the last evaluated point (J), scaled by the residual
+    # variance for least squares
+    scale = 1.0 if poisson else rss / max(npix - P, 1)
+    for a in range(P):
+        for bb in range(P):
+            A[a, bb] = J[a, bb]
+        A[a, a] += 1e-12
+    if _chol(A, P):
+        for a in range(P):
+            var[a] = _chol_inv_diag(A, P, a, gt) * scale
+    else:
+        for a in range(P):
+            var[a] = np.nan
+    return converged, f, it
+
+
+@nb.njit(cache=True)
+def _fit_one(img, r, c, half, sigma0, gain, offset, rvar, poisson, max_iter, out, cov, w):
+    # one spot alone in the window of half-width half around pixel (r, c), started from the border mean
+    # (background) and the centroid of the excess; out = (x, y, N, b, s), cov = their variances.
+    # Returns (ok, iterations).
+    h, wd = img.shape
     r0 = max(0, r - half)
     r1 = min(h - 1, r + half)
     c0 = max(0, c - half)
-    c1 = min(w - 1, c + half)
+    c1 = min(wd - 1, c + half)
     nr = r1 - r0 + 1
     nc = c1 - c0 + 1
-    # initial guess: border mean as background, centroid of the excess
     b0 = _border_mean(img, r0, nr, c0, nc, gain, offset)
     sw = 0.0
     sx = 0.0
@@ -148,102 +480,13 @@ def _fit_one(img, r, c, half, sigma0, gain, offset, rvar, poisson, max_iter, out
                 sy += v * (r0 + i)
     if sw <= 0:
         return False, 0
-    th = np.empty(5)
-    th[0] = sx / sw
-    th[1] = sy / sw
-    th[2] = sw
-    th[3] = max(b0, 0.0) if poisson else b0
-    th[4] = sigma0
-    ex = np.empty(nc)
-    ey = np.empty(nr)
-    dxx = np.empty(nc)
-    dxs = np.empty(nc)
-    dyy = np.empty(nr)
-    dys = np.empty(nr)
-    J = np.zeros((5, 5))
-    g = np.zeros(5)
-    dm = np.zeros(5)
-    lam = 1e-3
-    f = _objective(img, r0, r1, c0, c1, th, gain, offset, rvar, poisson, ex, ey, dxx, dxs, dyy, dys)
-    it = 0
-    converged = False
-    trial = np.empty(5)
-    while it < max_iter:
-        it += 1
-        # gradient and Fisher information at th (profiles are current from the last objective call)
-        _erf_profile(c0, nc, th[0], th[4], ex, dxx, dxs)
-        _erf_profile(r0, nr, th[1], th[4], ey, dyy, dys)
-        J[:, :] = 0.0
-        g[:] = 0.0
-        for i in range(nr):
-            for j in range(nc):
-                mu = _spot_model(th, ex, ey, dxx, dxs, dyy, dys, i, j, dm)
-                d = (img[r0 + i, c0 + j] - offset) / gain
-                if poisson:
-                    mu += rvar
-                    d += rvar
-                    if mu < 1e-9:
-                        mu = 1e-9
-                    wgt = 1.0 / mu
-                    res = d / mu - 1.0
-                else:
-                    wgt = 1.0
-                    res = d - mu
-                for a in range(5):
-                    g[a] += res * dm[a]
-                    for bb in range(a, 5):
-                        J[a, bb] += wgt * dm[a] * dm[bb]
-        for a in range(5):
-            for bb in range(a):
-                J[a, bb] = J[bb, a]
-        improved = False
-        for _ in range(12):
-            A = J.copy()
-            for a in range(5):
-                A[a, a] += lam * J[a, a] + 1e-12
-            step = np.linalg.solve(A, g)
-            for a in range(5):
-                trial[a] = th[a] + step[a]
-            if trial[2] <= 0 or trial[4] < 0.25 * sigma0 or trial[4] > 4.0 * sigma0 or (poisson and trial[3] < -rvar):
-                lam *= 10.0
-                continue
-            ft = _objective(img, r0, r1, c0, c1, trial, gain, offset, rvar, poisson, ex, ey, dxx, dxs, dyy, dys)
-            if ft >= f:
-                th[:] = trial
-                f = ft
-                lam = max(lam * 0.1, 1e-7)
-                improved = True
-                break
-            lam *= 10.0
-        # converged when the centre moves by < _XTOL px: 1e-3 px is >= 20x below the bound of any spot we
-        # localise (0.02-0.1 px), and brightfield images with halos (not Gaussian) crawl below it for ~10
-        # more iterations; least squares stops at _RTOL of the centre's standard error when that is larger
-        tol = _XTOL if poisson else max(_XTOL, _RTOL * _ls_sd(J, -2.0 * f, nr * nc, 5, 0))
-        if not improved or (abs(step[0]) < tol and abs(step[1]) < tol):
-            converged = True
-            break
-    # covariance: inverse Fisher information (Poisson), scaled by the residual variance (least squares)
-    _erf_profile(c0, nc, th[0], th[4], ex, dxx, dxs)
-    _erf_profile(r0, nr, th[1], th[4], ey, dyy, dys)
-    J[:, :] = 0.0
-    rss = 0.0
-    for i in range(nr):
-        for j in range(nc):
-            mu = _spot_model(th, ex, ey, dxx, dxs, dyy, dys, i, j, dm)
-            d = (img[r0 + i, c0 + j] - offset) / gain
-            rss += (d - mu) ** 2
-            wgt = 1.0 / max(mu + rvar, 1e-9) if poisson else 1.0
-            for a in range(5):
-                for bb in range(5):
-                    J[a, bb] += wgt * dm[a] * dm[bb]
-    for a in range(5):
-        J[a, a] += 1e-12
-    C = np.linalg.inv(J)
-    scale = 1.0 if poisson else rss / max(nr * nc - 5, 1)
-    for a in range(5):
-        cov[a] = C[a, a] * scale
-    out[:] = th
-    ok = converged and abs(th[0] - c) <= half and abs(th[1] - r) <= half and th[2] > 0
+    out[0] = sx / sw
+    out[1] = sy / sw
+    out[2] = sw
+    out[3] = max(b0, 0.0) if poisson else b0
+    out[4] = sigma0
+    converged, _, it = _lm(img, r0, nr, c0, nc, out, 1, sigma0, gain, offset, rvar, poisson, max_iter, False, w, cov)
+    ok = converged and abs(out[0] - c) <= half and abs(out[1] - r) <= half and out[2] > 0
     return ok, it
 
 
@@ -286,77 +529,15 @@ def _fit_all(img, rows, cols, half, sigma0, gain, offset, rvar, poisson, max_ite
     ecc = np.zeros(n)
     out = np.empty(5)
     cv = np.empty(5)
+    w = _work(1, 2 * half + 1)
     for k in range(n):
-        good, it = _fit_one(img, rows[k], cols[k], half, sigma0, gain, offset, rvar, poisson, max_iter, out, cv)
+        good, it = _fit_one(img, rows[k], cols[k], half, sigma0, gain, offset, rvar, poisson, max_iter, out, cv, w)
         params[k] = out
         var[k] = cv
         ok[k] = good
         if good:
-            ecc[k] = _moments(img, rows[k], cols[k], half, out[0], out[1], out[3] * gain + offset
-                              if not poisson else (out[3]) * gain + offset)
+            ecc[k] = _moments(img, rows[k], cols[k], half, out[0], out[1], out[3] * gain + offset)
     return params, var, ok, ecc
-
-
-@nb.njit(cache=True)
-def _group_objective(img, r0, nr, c0, nc, th, K, gain, offset, rvar, poisson, ex, ey, dxx, dxs, dyy, dys):
-    # log-likelihood (Poisson) or -RSS/2 of K Gaussians (x, y, N each) on a shared background and width
-    b = th[3 * K]
-    s = th[3 * K + 1]
-    for k in range(K):
-        _erf_profile(c0, nc, th[3 * k], s, ex[k], dxx[k], dxs[k])
-        _erf_profile(r0, nr, th[3 * k + 1], s, ey[k], dyy[k], dys[k])
-    f = 0.0
-    for i in range(nr):
-        for j in range(nc):
-            mu = b
-            for k in range(K):
-                mu += th[3 * k + 2] * ex[k, j] * ey[k, i]
-            f += _pixel_loglik((img[r0 + i, c0 + j] - offset) / gain, mu, rvar, poisson)
-    return f
-
-
-@nb.njit(cache=True)
-def _group_fisher(img, r0, nr, c0, nc, th, K, gain, offset, rvar, poisson, ex, ey, dxx, dxs, dyy, dys, J, g, dm):
-    # Fisher information (or Gauss-Newton matrix) J and score g at th; returns the residual sum of squares
-    P = 3 * K + 2
-    s = th[3 * K + 1]
-    for k in range(K):
-        _erf_profile(c0, nc, th[3 * k], s, ex[k], dxx[k], dxs[k])
-        _erf_profile(r0, nr, th[3 * k + 1], s, ey[k], dyy[k], dys[k])
-    J[:, :] = 0.0
-    g[:] = 0.0
-    rss = 0.0
-    for i in range(nr):
-        for j in range(nc):
-            mu = th[3 * K]
-            ds_ = 0.0
-            for k in range(K):
-                N = th[3 * k + 2]
-                e = ex[k, j] * ey[k, i]
-                mu += N * e
-                dm[3 * k] = N * dxx[k, j] * ey[k, i]
-                dm[3 * k + 1] = N * ex[k, j] * dyy[k, i]
-                dm[3 * k + 2] = e
-                ds_ += N * (dxs[k, j] * ey[k, i] + ex[k, j] * dys[k, i])
-            dm[3 * K] = 1.0
-            dm[3 * K + 1] = ds_
-            d = (img[r0 + i, c0 + j] - offset) / gain
-            rss += (d - mu) ** 2
-            if poisson:
-                m = max(mu + rvar, 1e-9)
-                wgt = 1.0 / m
-                res = (d + rvar) / m - 1.0
-            else:
-                wgt = 1.0
-                res = d - mu
-            for a in range(P):
-                g[a] += res * dm[a]
-                for bb in range(a, P):
-                    J[a, bb] += wgt * dm[a] * dm[bb]
-    for a in range(P):
-        for bb in range(a):
-            J[a, bb] = J[bb, a]
-    return rss
 
 
 @nb.njit(cache=True)
@@ -366,7 +547,6 @@ def _fit_group(img, r0, r1, c0, c1, x0, y0, amp, sigma0, gain, offset, rvar, poi
     # inverse Fisher information (scaled by the residual variance for least squares).
     # Returns (converged, log-likelihood).
     K = x0.shape[0]
-    P = 3 * K + 2
     nr = r1 - r0 + 1
     nc = c1 - c0 + 1
     b0 = _border_mean(img, r0, nr, c0, nc, gain, offset)
@@ -385,70 +565,8 @@ def _fit_group(img, r0, r1, c0, c1, x0, y0, amp, sigma0, gain, offset, rvar, poi
         th[3 * k + 2] = max(sw * max(amp[k], 1e-12) / asum, 1.0)
     th[3 * K] = max(b0, 0.0) if poisson else b0
     th[3 * K + 1] = sigma0
-    ex = np.empty((K, nc))
-    ey = np.empty((K, nr))
-    dxx = np.empty((K, nc))
-    dxs = np.empty((K, nc))
-    dyy = np.empty((K, nr))
-    dys = np.empty((K, nr))
-    J = np.zeros((P, P))
-    g = np.zeros(P)
-    dm = np.zeros(P)
-    trial = np.empty(P)
-    step = np.zeros(P)
-    lam = 1e-3
-    f = _group_objective(img, r0, nr, c0, nc, th, K, gain, offset, rvar, poisson, ex, ey, dxx, dxs, dyy, dys)
-    converged = False
-    for it in range(max_iter):
-        _group_fisher(img, r0, nr, c0, nc, th, K, gain, offset, rvar, poisson, ex, ey, dxx, dxs, dyy, dys, J, g, dm)
-        improved = False
-        for _ in range(12):
-            A = J.copy()
-            for a in range(P):
-                A[a, a] += lam * J[a, a] + 1e-12
-            step = np.linalg.solve(A, g)
-            bad = False
-            for a in range(P):
-                trial[a] = th[a] + step[a]
-            for k in range(K):
-                if (trial[3 * k + 2] <= 0 or trial[3 * k] < c0 - 1 or trial[3 * k] > c1 + 1
-                        or trial[3 * k + 1] < r0 - 1 or trial[3 * k + 1] > r1 + 1):
-                    bad = True
-            s = trial[3 * K + 1]
-            if bad or s < 0.25 * sigma0 or s > 4.0 * sigma0 or (poisson and trial[3 * K] < -rvar):
-                lam *= 10.0
-                continue
-            ft = _group_objective(img, r0, nr, c0, nc, trial, K, gain, offset, rvar, poisson,
-                                  ex, ey, dxx, dxs, dyy, dys)
-            if ft >= f:
-                th[:] = trial
-                f = ft
-                lam = max(lam * 0.1, 1e-7)
-                improved = True
-                break
-            lam *= 10.0
-        small = True
-        tol = _XTOL
-        if not poisson:
-            # least squares: at _RTOL of the standard error of the worst-determined centre, when larger
-            sdmin = 1e300
-            for k in range(K):
-                sdmin = min(sdmin, _ls_sd(J, -2.0 * f, nr * nc, P, 3 * k))
-            tol = max(_XTOL, _RTOL * sdmin)
-        for k in range(K):
-            if abs(step[3 * k]) >= tol or abs(step[3 * k + 1]) >= tol:
-                small = False
-        if not improved or small:
-            converged = True
-            break
-    rss = _group_fisher(img, r0, nr, c0, nc, th, K, gain, offset, rvar, poisson, ex, ey, dxx, dxs, dyy, dys,
-                        J, g, dm)
-    for a in range(P):
-        J[a, a] += 1e-12
-    C = np.linalg.inv(J)
-    scale = 1.0 if poisson else rss / max(nr * nc - P, 1)
-    for a in range(P):
-        var[a] = C[a, a] * scale
+    w = _work(K, max(nr, nc))
+    converged, f, _ = _lm(img, r0, nr, c0, nc, th, K, sigma0, gain, offset, rvar, poisson, max_iter, True, w, var)
     return converged, f
 
 
