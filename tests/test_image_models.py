@@ -336,13 +336,9 @@ def test_fisher_bound_of_a_pixelated_gaussian_is_the_closed_form():
 
 #: cases where ptrack's default locate fails the criteria, with the measured failure (strict xfail)
 KNOWN_FAILURES: dict[str, str] = {
-    # measured on the working tree of 73b8f47 (the detector is being reworked: when a case passes, strict
-    # xfail reports XPASS and its line here goes). An ML fit of the true model reaches 0.9-1.2x the bound in
-    # every case (bench/bench_image_models.py --ml), so the bound is attainable.
-    "fluor z=+6.0": "ring of radius 9 px: recall 0.006, precision 0.013 (48 detections per 81 rings, all on the "
-                    "ring 6-8 px from the centre, at scales 1-1.4 px; no default scale reaches the ring)",
-    "bf z=+1.5": "bright centre in a dark ring (first zero 3.2 px): recall 0.86 (the missed particles are not "
-                 "detected at all), RMSE 0.198 px = 1.51x the bound 0.131 (0.238 = 1.8x at 73b8f47)",
+    # none since the ring maps (ptrack.image.rings): "fluor z=+6.0" (ring of radius 9 px: recall 0.006 before) and
+    # "bf z=+1.5" (bright centre in a dark ring: recall 0.86, RMSE 1.51x the bound before) pass. An ML fit of the
+    # true model reaches 0.9-1.2x the bound in every case (bench/bench_image_models.py --ml): the bound is attainable.
 }
 
 

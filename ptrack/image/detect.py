@@ -41,6 +41,7 @@ import numba as nb
 import numpy as np
 
 from ..errors import UserError
+from .rings import RING_RADII, ring_evidence, ring_maps_candidates, ring_scale
 
 __all__ = ["DEFAULT_SCALES", "FALSE_ALARM_RATE", "MAP_REFRESH", "bandpass", "noise_maps", "false_alarm_threshold",
            "detect"]
@@ -54,6 +55,10 @@ DEFAULT_SCALES = (1.0, 1.41, 2.0, 2.83, 4.0)
 MAP_REFRESH = 16
 #: Default false-alarm rate: expected false detections per pixel of an empty frame.
 FALSE_ALARM_RATE = 1e-6
+#: Share of the false-alarm rate given to the ring maps (:mod:`ptrack.image.rings`), on top of the blob scales'.
+RING_RATE_SHARE = 0.5
+#: Scale (px) reported for a ring of radius R found by the ring maps: R x this
+RING_SCALE_PER_RADIUS = 0.4
 # surround of the band-pass, in units of the scale: 2 = two rungs of the sqrt(2) ladder, so the
 # ladder's blurs serve as each other's surrounds (n + 2 blurs for n scales)
 _SURROUND = 2.0
@@ -204,7 +209,13 @@ def false_alarm_threshold(scales, rate: float = FALSE_ALARM_RATE) -> float:
     ``lambda u exp(-u^2 / 2) / (2 pi)^(3/2)``; summed over the scales (the
     finest dominates) and solved for ``u`` by bisection.
     """
-    lam = np.array([_gradient_ratio(s) for s in scales])
+    return threshold_for(tuple(_gradient_ratio(s) for s in scales), rate)
+
+
+def threshold_for(lambdas, rate: float) -> float:
+    """Level ``u`` (noise units) above which smooth Gaussian fields with gradient ratios ``lambdas`` (px^-2)
+    have ``rate`` local maxima per pixel together: ``sum(lambda) u exp(-u^2/2) / (2 pi)^(3/2) = rate``."""
+    lam = np.asarray(lambdas, float)
     if not 0 < rate < 1:
         raise UserError(f"false-alarm rate {rate} is outside (0, 1)", "give a rate such as 1e-6 per px")
 
@@ -340,7 +351,7 @@ def _ring_test(frame, bgmap, noise, sign, rows, cols, scale, out):
 
 
 @nb.njit(cache=True)
-def _suppress(rows, cols, scale, order, radius_factor, min_radius, ring):
+def _suppress(rows, cols, scale, order, radius_factor, min_radius, ring, reach):
     # greedy non-maximum suppression in order of decreasing SNR. Candidates of clearly different scales
     # (more than 1.5x, i.e. beyond the next rung) within radius_factor x the larger scale are one image:
     # a finer one is a piece of a coarse image (a ring's necklace), a coarser one the blend of finer
@@ -359,7 +370,7 @@ def _suppress(rows, cols, scale, order, radius_factor, min_radius, ring):
             lo = min(scale[i], scale[j])
             hi = max(scale[i], scale[j])
             if ring[j] and scale[i] <= scale[j]:
-                rad = max(radius_factor * scale[j], min_radius)     # anything inside a kept ring is the ring
+                rad = max(reach[j], min_radius)     # anything inside a kept ring is the ring
             elif hi > 1.5 * lo:
                 rad = max(radius_factor * hi, min_radius)
             else:
@@ -378,7 +389,7 @@ def _suppress(rows, cols, scale, order, radius_factor, min_radius, ring):
 
 def detect(frame, scales=None, polarity: int | None = None, snr: float | None = None,
            rate: float = FALSE_ALARM_RATE, median: bool = True, tile: int = 32, edge: int = 2,
-           suppress: float = 2.0, offset: float = 0.0, cache: dict | None = None):
+           suppress: float = 2.0, offset: float = 0.0, cache: dict | None = None, rings: bool = True):
     """Detect particles of several sizes without tuning knobs.
 
     Parameters
@@ -415,6 +426,9 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         :data:`MAP_REFRESH` - 1, and measured again sooner when the frame's
         background level (median of a 1/64 sub-sample) moves by more than 3
         of its standard errors + 1 %.
+    rings : bool
+        Also look for ring centres by the rim's vote (:mod:`ptrack.image.rings`)
+        when the candidates say the frame holds rings (default; False: blobs only).
 
     Returns
     -------
@@ -525,13 +539,34 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         rflag = np.zeros(len(coarse), np.bool_)
         _ring_test(fr, rb, rn, float(polarity), rows[coarse], cols[coarse], sc[coarse].astype(np.float64), rflag)
         ring[coarse] = rflag
+    sig = amp[kk, np.arange(len(rows))] if len(rows) else np.zeros(0)
+    reach = np.zeros(len(rows))     # radius (px) within which a ring's own pieces are dropped (0: suppress x scale)
+    if rings and len(rows) >= 3:
+        # rings: a centre vote from the rim (ptrack.image.rings), computed where the blob candidates say the
+        # frame holds rings (rim pieces are ridges, faint centres sit in rings of the opposite sign)
+        J = polarity * (np.asarray(frame, np.float32) - rb)
+        if ring_evidence(b1s, b2s, float(polarity), J, rn, rows, cols, kk):
+            need = sorted({ring_scale(R, scales) for R in RING_RADII})
+            bands = {s: (blurs[s] - blurs[_SURROUND * s]) * np.float32(polarity) for s in need}
+            rc = ring_maps_candidates(bands, J, rn, RING_RATE_SHARE * float(rate), scales, edge=int(edge),
+                                      tile=int(tile))
+            m = len(rc["rows"])
+            if m:
+                rows, cols = np.r_[rows, rc["rows"]], np.r_[cols, rc["cols"]]
+                # the ring's size as a blob scale (the localiser's windows are ~3 scales), and its reach: the
+                # radius plus the rim's width
+                sc = np.r_[sc, RING_SCALE_PER_RADIUS * rc["radius"]]
+                reach = np.r_[reach, rc["radius"] + 2.5]
+                z, sig = np.r_[z, rc["snr"]], np.r_[sig, np.abs(rc["signal"])]
+                kk = np.r_[kk, np.zeros(m, kk.dtype)]
+                ring = np.r_[ring, np.ones(m, np.bool_)]
     if len(rows) > 1:
         # rings first (their necklace of fine-scale maxima is often stronger than the ring's own response),
         # then by decreasing SNR
         order = np.lexsort((-z, ~ring)).astype(np.int64)
-        keep = _suppress(rows, cols, sc.astype(np.float64), order, float(suppress), 1.5, ring)
-        rows, cols, sc, z, kk, amp, ring = rows[keep], cols[keep], sc[keep], z[keep], kk[keep], amp[:, keep], ring[keep]
-    sig = amp[kk, np.arange(len(rows))] if len(rows) else np.zeros(0)
+        reach = np.where(reach > 0, reach, float(suppress) * sc)
+        keep = _suppress(rows, cols, sc.astype(np.float64), order, float(suppress), 1.5, ring, reach.astype(np.float64))
+        rows, cols, sc, z, kk, sig, ring = rows[keep], cols[keep], sc[keep], z[keep], kk[keep], sig[keep], ring[keep]
     return {"rows": rows, "cols": cols, "scale": sc, "snr": z, "signal": np.asarray(sig, np.float64),
             "polarity": polarity, "threshold": float(u), "noise": float(noise0), "scales": scales,
             "background_map": rb, "noise_map": rn, "ring": ring}

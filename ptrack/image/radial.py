@@ -208,6 +208,11 @@ def _bspline(t):
     return v, (d if t >= 0 else -d)
 
 
+# Gauss-Newton steps of the profile fit, and the damped steps allowed after them to a fit that has not converged
+_MAX_ITER = 40
+_DAMPED_ITER = 40
+
+
 @nb.njit(cache=True)
 def _profile_one(img, r, c, half, x0, y0, n2, gw, out):
     # image = P(|p - centre|) + background terms over the pixels within `half` of the start (x0, y0);
@@ -237,7 +242,10 @@ def _profile_one(img, r, c, half, x0, y0, n2, gw, out):
     st = 1.0
     sd = 0.0
     it = 0
-    for it in range(40):
+    damp = 1.0
+    px_ = 0.0
+    py_ = 0.0
+    for it in range(_MAX_ITER + _DAMPED_ITER):
         A[:, :] = 0.0
         rhs[:, :] = 0.0
         rss = 0.0
@@ -337,6 +345,15 @@ def _profile_one(img, r, c, half, x0, y0, n2, gw, out):
         # a step of the centre of at most 1 px
         st = math.sqrt(sol[IX, 0] ** 2 + sol[IY, 0] ** 2)
         f = 1.0 if st <= 1.0 else 1.0 / st
+        if it >= _MAX_ITER:
+            # not converged in _MAX_ITER steps: the centre oscillates (the profile refitted to the noise as the
+            # centre moves); each reversal of the step halves the steps from here on
+            if sol[IX, 0] * px_ + sol[IY, 0] * py_ < 0:
+                damp *= 0.5
+            f *= damp
+            st *= damp
+        px_ = sol[IX, 0]
+        py_ = sol[IY, 0]
         for q in range(NL):
             theta[q] += sol[q, 0]
         xc += f * sol[IX, 0]
