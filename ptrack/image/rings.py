@@ -12,7 +12,7 @@ averaged around the circle of radius ``R`` about each pixel,
     ``S_R(c) = mean_theta B_s(c + R (cos theta, sin theta))``,
 
 a linear, matched statistic of a thin ring (the circle's samples are
-bilinear, one per px of arc). At a ring's centre the whole rim adds up
+nearest pixels, one per px of arc). At a ring's centre the whole rim adds up
 coherently, in noise units ``sqrt(2 pi R / correlation length)`` times more
 than one piece of it; both signs are searched (a bright rim, ``S > 0``; a
 ring darker than the surroundings, ``S < 0``, such as the dark ring around
@@ -64,39 +64,37 @@ def ring_scale(R: float, scales) -> float:
 
 @functools.lru_cache(maxsize=64)
 def _taps(R: float):
-    # bilinear samples of the circle of radius R, one per px of arc; merged (dr, dc, weight), weights sum to 1
+    # the circle of radius R as pixel offsets (dr, dc) and weights: one sample per px of arc, at the nearest
+    # pixel (the bands are smooth on the scale of a pixel; a bilinear circle costs 2.2x the taps for the same
+    # maps within 2 %); weights sum to 1
     n = max(16, int(math.ceil(2 * math.pi * R)))
-    acc: dict = {}
-    for t in np.arange(n) * (2 * math.pi / n):
-        x, y = R * math.cos(t), R * math.sin(t)
-        x0, y0 = math.floor(x), math.floor(y)
-        fx, fy = x - x0, y - y0
-        for dr, dc, wt in ((y0, x0, (1 - fx) * (1 - fy)), (y0, x0 + 1, fx * (1 - fy)),
-                           (y0 + 1, x0, (1 - fx) * fy), (y0 + 1, x0 + 1, fx * fy)):
-            if wt > 1e-9:
-                acc[(dr, dc)] = acc.get((dr, dc), 0.0) + wt / n
-    keys = sorted(acc)
-    return (np.array([k[0] for k in keys], np.int64), np.array([k[1] for k in keys], np.int64),
-            np.array([acc[k] for k in keys], np.float32))
+    t = np.arange(n) * (2 * math.pi / n)
+    off = np.unique(np.c_[np.round(R * np.sin(t)), np.round(R * np.cos(t))].astype(np.int64), axis=0, return_counts=True)
+    (dr, dc), cnt = off[0].T, off[1]
+    return (np.ascontiguousarray(dr), np.ascontiguousarray(dc), (cnt / cnt.sum()).astype(np.float32))
 
 
 @nb.njit(cache=True)
 def _circle_grid(B, dr, dc, wt, edge, stride, out):
-    # out[i, j] = sum_t wt[t] B[i stride + dr[t], j stride + dc[t]]; 0 within `edge` px of the border
+    # out[i, j] = sum_t wt[t] B[i stride + dr[t], j stride + dc[t]]; 0 within `edge` px of the border.
+    # Row by row, tap by tap: the inner loop runs along one row of B (cache-friendly)
     h, w = B.shape
     gh, gw = out.shape
     nt = dr.shape[0]
+    j0 = (edge + stride - 1) // stride
+    j1 = (w - edge - 1) // stride          # last grid column with c < w - edge
     for i in range(gh):
         r = i * stride
         for j in range(gw):
-            c = j * stride
-            if r < edge or c < edge or r >= h - edge or c >= w - edge:
-                out[i, j] = 0.0
-                continue
-            s = 0.0
-            for t in range(nt):
-                s += wt[t] * B[r + dr[t], c + dc[t]]
-            out[i, j] = s
+            out[i, j] = 0.0
+        if r < edge or r >= h - edge or j1 < j0:
+            continue
+        for t in range(nt):
+            row = B[r + dr[t]]
+            a = wt[t]
+            d = dc[t]
+            for j in range(j0, j1 + 1):
+                out[i, j] += a * row[j * stride + d]
 
 
 @nb.njit(cache=True)
@@ -337,7 +335,9 @@ def ring_maps_candidates(bands, J, noise_pix, rate: float, scales, radii=RING_RA
         _circle_grid(bands[s], dr, dc, wt, e, _STRIDE, g)
         # the map's noise over tiles holding ~100 of its correlation areas (side >= 12 R)
         t_side = max(int(tile), int(12 * R), int(math.sqrt(H * W / 64.0)))
-        grid = noise_maps(g, tile=t_side, step=_STRIDE, what="grid", shape=(H, W))
+        # (every other grid point: the map is smooth over a few px, ~1000 samples per tile remain)
+        grid = noise_maps(np.ascontiguousarray(g[::2, ::2]), tile=t_side, step=2 * _STRIDE, what="grid",
+                          shape=(H, W))
         inv = (np.full((gh, gw), grid[0, 0], np.float32) if grid.size == 1
                else cv2.resize(grid, (gw, gh), interpolation=cv2.INTER_LINEAR))
         invs.append(inv)
