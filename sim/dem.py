@@ -8,7 +8,8 @@ Layout (jax-md / HOOMD style: small pieces composed by the caller):
 * :class:`DEMSystem` holds the state as contiguous float64 arrays (structure
   of arrays), the force-model parameters, the box and the neighbour list with
   per-entry contact history.  ``system.run(n)`` advances ``n`` steps inside one
-  compiled kernel (:func:`_run_chunk`): no Python per step, no allocation per
+  compiled kernel (the stepper of its integrator: :func:`_run_verlet`,
+  :func:`_run_phi` or :func:`_run_overdamped`; only that one is compiled): no Python per step, no allocation per
   step (the list is rebuilt - and only then allocated - when some particle
   moved more than half the skin).
 * :func:`run_dem` runs a :class:`sim.scene.Scene` that has pair interactions:
@@ -39,7 +40,8 @@ import math
 import time
 
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.extending import overload
 
 from sim.forces.contact import (CONTACT_NONE, D_MAX_DAMP, D_MAX_OVERLAP, D_MAX_OVERLAP_I, D_MAX_W2, D_N_CONTACTS, D_SIZE,
                                 pair_forces, pair_forces_parallel, wall_forces)
@@ -69,7 +71,7 @@ STATUS_TEXT = {
 }
 
 DRAG_NONE, DRAG_STOKES, DRAG_SEED = 0, 1, 2
-VERLET, PHI_SCHEME, OVERDAMPED = 0, 1, 2  # integrator codes of _run_chunk
+VERLET, PHI_SCHEME, OVERDAMPED = 0, 1, 2  # integrator codes (STEPPERS: the kernel of each)
 
 # the ``guards`` array of the kernels: blow-up limits, the fixed-point tolerance and the overdamped
 # stepper's options (sticking substrate, largest drift step in m, time at which to stop in s)
@@ -160,15 +162,17 @@ def _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, ext
 @njit(cache=True)
 def _interaction_forces(pos, vel, omega, radius, mass, charge, model, cp, cpw, pair_laws, wall_laws, rotation,
                         walls, whist, start, nbj, shift, hist, force, torque, dt, diag, fbuf, tbuf, dbuf, pairs):
-    """Add the pair forces (``pairs``: contact or non-contact laws on; threaded with per-thread buffers
-    when ``fbuf`` has more than one) and the wall contact and wall laws to ``force``, ``torque``."""
+    """Add the pair forces (``pairs``: contact or non-contact laws on; threaded with the per-thread
+    buffers ``fbuf``, ``tbuf``, ``dbuf``, serial when ``fbuf`` is None: the branch is pruned at compile
+    time, so a serial run never compiles the threaded kernel) and the wall contact and wall laws to
+    ``force``, ``torque``."""
     if pairs:
-        if fbuf.shape[0] > 1:
-            pair_forces_parallel(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist, force, torque,
-                                 model, cp, pair_laws, rotation, dt, diag, fbuf, tbuf, dbuf)
-        else:
+        if fbuf is None:
             pair_forces(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist, force, torque,
                         model, cp, pair_laws, rotation, dt, diag)
+        else:
+            pair_forces_parallel(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist, force, torque,
+                                 model, cp, pair_laws, rotation, dt, diag, fbuf, tbuf, dbuf)
     if walls.shape[0] > 0 and model != CONTACT_NONE:
         wall_forces(pos, vel, omega, radius, mass, walls, whist, force, torque, model, cpw, rotation, dt, diag)
     if walls.shape[0] > 0 and wall_laws.shape[0] > 0:
@@ -326,205 +330,265 @@ def rebuild_sorted(pos, image, vel, omega, force, torque, radius, mass, inertia,
     return ns, nj, nsh, hist
 
 
-@njit(cache=True)
-def _rebuild_any(sort, pos, image, vel, omega, force, torque, radius, mass, inertia, charge, gamma, fconst, frozen,
+def _rebuild_any(pos, image, vel, omega, force, torque, radius, mass, inertia, charge, gamma, fconst, frozen,
                  whist, order, cutoff, skin, lo, length, periodic, start, nbj, hist, ref_pos):
-    if sort:
-        return rebuild_sorted(pos, image, vel, omega, force, torque, radius, mass, inertia, charge, gamma, fconst,
-                              frozen, whist, order, cutoff, skin, lo, length, periodic, start, nbj, hist, ref_pos)
-    return rebuild_neighbors(pos, image, radius, cutoff, skin, lo, length, periodic, start, nbj, hist, ref_pos)
+    """:func:`rebuild_sorted` when ``order`` (slot -> particle id) is given, :func:`rebuild_neighbors` when it is
+    None (no cell ordering).  In a kernel the choice is made from the type of ``order`` when the caller is
+    compiled (:func:`_ol_rebuild_any`), so only the rebuild a system uses is compiled."""
+    if order is None:
+        return rebuild_neighbors(pos, image, radius, cutoff, skin, lo, length, periodic, start, nbj, hist, ref_pos)
+    return rebuild_sorted(pos, image, vel, omega, force, torque, radius, mass, inertia, charge, gamma, fconst,
+                          frozen, whist, order, cutoff, skin, lo, length, periodic, start, nbj, hist, ref_pos)
+
+
+@overload(_rebuild_any)
+def _ol_rebuild_any(pos, image, vel, omega, force, torque, radius, mass, inertia, charge, gamma, fconst, frozen,
+                    whist, order, cutoff, skin, lo, length, periodic, start, nbj, hist, ref_pos):
+    if isinstance(order, (types.NoneType, types.Omitted)):
+        def impl(pos, image, vel, omega, force, torque, radius, mass, inertia, charge, gamma, fconst, frozen,
+                 whist, order, cutoff, skin, lo, length, periodic, start, nbj, hist, ref_pos):
+            return rebuild_neighbors(pos, image, radius, cutoff, skin, lo, length, periodic, start, nbj, hist,
+                                     ref_pos)
+    else:
+        def impl(pos, image, vel, omega, force, torque, radius, mass, inertia, charge, gamma, fconst, frozen,
+                 whist, order, cutoff, skin, lo, length, periodic, start, nbj, hist, ref_pos):
+            return rebuild_sorted(pos, image, vel, omega, force, torque, radius, mass, inertia, charge, gamma,
+                                  fconst, frozen, whist, order, cutoff, skin, lo, length, periodic, start, nbj,
+                                  hist, ref_pos)
+    return impl
 
 
 @njit(cache=True)
-def _run_chunk(nsteps, dt, step0, integrator, phi, n_iter,
-               pos, image, vel, omega, force, torque, radius, mass, inertia, charge, gamma, fconst, frozen,
-               drag_mode, extp, seed, model, cp, cpw, pair_laws, wall_laws, rotation, walls, whist,
-               start, nbj, shift, hist, ref_pos, cutoff, skin, lo, length, periodic, guards, diag,
-               chunk_peaks, force_rebuild_at_end, nthreads, order, sort):
-    """Advance up to ``nsteps`` steps.  Returns
-    ``(status, steps_done, particle, start, nbj, shift, hist, ref_pos, n_builds, t_done)``.
+def _end_step(pos, vel, radius, guards, diag, chunk_peaks, t_done):
+    """After a step: the run's peaks of the diagnostics into ``chunk_peaks`` and the blow-up checks.
 
-    VERLET: velocity Verlet (kick-drift-kick; velocity-dependent forces
-    use the half-step velocity, as in LAMMPS).  PHI_SCHEME: the seed's
-    eq. 3.28-3.29 phi-scheme with ``n_iter`` fixed-point iterations on the
-    end-of-step forces (phi = 0: forward Euler).  OVERDAMPED: Brownian
-    dynamics with the pair, wall and constant forces (Euler-Maruyama,
-    x' = x + F dt / gamma + sqrt(2 kB T dt / gamma) N(0, 1), the counter-based
-    numbers of the Brownian force; ``vel`` holds the drift F / gamma), the
-    step shortened so that no drift step exceeds ``guards[G_MAX_STEP]`` (m,
-    0 = off); with ``guards[G_STICK]`` a particle reaching the substrate
-    sticks there (``frozen`` = 1, no longer moved), else its centre is
-    reflected at z = R; the chunk ends early once the time reaches
-    ``guards[G_T_STOP]``.
+    Returns ``(status, particle, stop)``: a status code other than OK (with its particle) ends the chunk
+    with that status; ``stop`` ends it with OK once the time ``t_done`` (s) reaches ``guards[G_T_STOP]``.
     """
-    n = pos.shape[0]
+    if diag[D_MAX_OVERLAP] > chunk_peaks[P_OVERLAP]:
+        chunk_peaks[P_OVERLAP] = diag[D_MAX_OVERLAP]
+    if diag[D_MAX_W2] > chunk_peaks[P_W2]:
+        chunk_peaks[P_W2] = diag[D_MAX_W2]
+    if diag[D_MAX_DAMP] > chunk_peaks[P_DAMP]:
+        chunk_peaks[P_DAMP] = diag[D_MAX_DAMP]
+    if diag[D_MAX_OVERLAP] > guards[G_MAX_OVERLAP]:
+        return BLOWUP_OVERLAP, int(diag[D_MAX_OVERLAP_I]), True
+    st, p = _check(pos, vel, radius, guards)
+    if st != OK:
+        return st, p, True
+    # the overdamped stepper's variable steps reached the requested time
+    return OK, -1, guards[G_T_STOP] > 0.0 and t_done >= guards[G_T_STOP]
+
+
+# The three steppers below take the same arguments (DEMSystem.run calls the one of its integrator), so that
+# only the stepper a system uses is compiled.  ``fbuf``, ``tbuf``, ``dbuf``: per-thread force, torque and
+# diagnostics buffers of the threaded pair kernel, or None for the serial one (the threaded kernel is then
+# not compiled); ``order`` None: no cell ordering (see _rebuild_any).  Each returns
+# ``(status, steps_done, particle, start, nbj, shift, hist, ref_pos, n_builds, t_done)``.
+
+
+@njit(cache=True)
+def _run_verlet(nsteps, dt, step0, phi, n_iter,
+                pos, image, vel, omega, force, torque, radius, mass, inertia, charge, gamma, fconst, frozen,
+                drag_mode, extp, seed, model, cp, cpw, pair_laws, wall_laws, rotation, walls, whist,
+                start, nbj, shift, hist, ref_pos, cutoff, skin, lo, length, periodic, guards, diag,
+                chunk_peaks, force_rebuild_at_end, fbuf, tbuf, dbuf, order):
+    """Up to ``nsteps`` velocity-Verlet steps (kick-drift-kick; velocity-dependent forces use the
+    half-step velocity, as in LAMMPS)."""
     nbuild = 0
     t_done = 0.0
-    bd_kT = extp[5]
-    if integrator == OVERDAMPED:
-        # forces without drag and Brownian force (see _external)
-        extp = extp.copy()
-        extp[5] = 0.0
-        drag_mode = DRAG_NONE
     hdt = 0.5 * dt
     pairs = model != CONTACT_NONE or pair_laws.shape[0] > 0
-    # per-thread force buffers of the threaded pair kernel (allocated once per chunk)
-    if nthreads > 1:
-        fbuf = np.zeros((nthreads, n, 3))
-        tbuf = np.zeros((nthreads, n, 3))
-    else:
-        fbuf = np.zeros((1, 0, 3))
-        tbuf = np.zeros((1, 0, 3))
-    dbuf = np.zeros((max(nthreads, 1), D_SIZE))
-    # buffers for the phi-scheme (allocated once per chunk)
-    if integrator == PHI_SCHEME:
-        x0 = np.empty_like(pos)
-        v0 = np.empty_like(vel)
-        w0 = np.empty_like(omega)
-        f0 = np.empty_like(force)
-        t0 = np.empty_like(torque)
-    else:
-        x0 = np.empty((0, 3))
-        v0 = np.empty((0, 3))
-        w0 = np.empty((0, 3))
-        f0 = np.empty((0, 3))
-        t0 = np.empty((0, 3))
     for s in range(nsteps):
         step = step0 + s + 1
-        if integrator == VERLET:
-            # kick + drift + skin test in one pass, external forces with the zeroing in one pass: the
-            # arithmetic of _half_kick, the drift, needs_rebuild and _forces in the same order per particle,
-            # so the results are those of the separate loops bit for bit
-            if _kick_drift(pos, vel, omega, force, torque, mass, inertia, ref_pos, hdt, dt, rotation, skin):
-                start, nbj, shift, hist = _rebuild_any(sort, pos, image, vel, omega, force, torque, radius, mass,
-                                                       inertia, charge, gamma, fconst, frozen, whist, order,
-                                                       cutoff, skin, lo, length, periodic, start, nbj, hist,
-                                                       ref_pos)
-                nbuild += 1
-            _begin_forces(vel, radius, charge, gamma, fconst, drag_mode, extp, seed, step, dt, rotation, force,
-                          torque, diag)
-            _interaction_forces(pos, vel, omega, radius, mass, charge, model, cp, cpw, pair_laws, wall_laws,
-                                rotation, walls, whist, start, nbj, shift, hist, force, torque, dt, diag, fbuf,
-                                tbuf, dbuf, pairs)
-            _half_kick(vel, omega, force, torque, mass, inertia, hdt, rotation)
-            t_done += dt
-        elif integrator == OVERDAMPED:
-            dts = dt
-            if guards[G_MAX_STEP] > 0.0:
-                for i in range(n):
-                    if frozen[i] == 0.0:
-                        f2 = force[i, 0] * force[i, 0] + force[i, 1] * force[i, 1] + force[i, 2] * force[i, 2]
-                        if f2 > 0.0:
-                            lim = guards[G_MAX_STEP] * gamma[i] / math.sqrt(f2)
-                            if lim < dts:
-                                dts = lim
-            stick = guards[G_STICK] != 0.0
-            bottom = guards[G_HAS_BOTTOM] != 0.0
-            for i in range(n):
-                if frozen[i] != 0.0:
-                    continue
-                sd = math.sqrt(2.0 * bd_kT * dts / gamma[i]) if bd_kT > 0.0 else 0.0
-                for c in range(3):
-                    v = force[i, c] / gamma[i]
-                    vel[i, c] = v
-                    pos[i, c] += v * dts
-                    if sd > 0.0:
-                        pos[i, c] += sd * counter_normal(seed, step, 3 * i + c)
-                if bottom and pos[i, 2] <= radius[i]:
-                    if stick:
-                        pos[i, 2] = radius[i]
-                        frozen[i] = 1.0
-                        vel[i, 0] = 0.0
-                        vel[i, 1] = 0.0
-                        vel[i, 2] = 0.0
-                    else:
-                        # hard, frictionless substrate: reflecting boundary for the centre at z = R
-                        pos[i, 2] = 2.0 * radius[i] - pos[i, 2]
-            t_done += dts
-            if needs_rebuild(pos, ref_pos, skin):
-                start, nbj, shift, hist = _rebuild_any(sort, pos, image, vel, omega, force, torque, radius, mass,
-                                                       inertia, charge, gamma, fconst, frozen, whist, order,
-                                                       cutoff, skin, lo, length, periodic, start, nbj, hist,
-                                                       ref_pos)
-                nbuild += 1
-            _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt,
-                    model, cp, cpw, pair_laws, wall_laws, rotation, walls, whist, start, nbj, shift, hist,
-                    force, torque, diag, fbuf, tbuf, dbuf)
-            for i in range(n):
-                if frozen[i] != 0.0:
-                    force[i, 0] = 0.0
-                    force[i, 1] = 0.0
-                    force[i, 2] = 0.0
-        else:
-            # phi-scheme: v1 = v0 + dt/m (phi F1 + (1-phi) F0); x1 = x0 + dt (phi v1 + (1-phi) v0)
-            x0[:, :] = pos
-            v0[:, :] = vel
-            w0[:, :] = omega
-            f0[:, :] = force
-            t0[:, :] = torque
-            hist0 = hist.copy()
-            whist0 = whist.copy()
-            for i in range(n):
-                for c in range(3):
-                    vel[i, c] = v0[i, c] + dt / mass[i] * f0[i, c]
-                    pos[i, c] = x0[i, c] + dt * v0[i, c]
-                    if rotation:
-                        omega[i, c] = w0[i, c] + dt / inertia[i] * t0[i, c]
-            for it in range(n_iter if phi > 0.0 else 0):
-                hist[:, :] = hist0
-                whist[:, :] = whist0
-                _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt,
-                        model, cp, cpw, pair_laws, wall_laws, rotation, walls, whist, start, nbj, shift, hist,
-                        force, torque, diag, fbuf, tbuf, dbuf)
-                change = 0.0
-                vscale = 0.0
-                for i in range(n):
-                    for c in range(3):
-                        vnew = v0[i, c] + dt / mass[i] * (phi * force[i, c] + (1.0 - phi) * f0[i, c])
-                        d = abs(vnew - vel[i, c])
-                        if d > change:
-                            change = d
-                        if abs(vnew) > vscale:
-                            vscale = abs(vnew)
-                        vel[i, c] = vnew
-                        pos[i, c] = x0[i, c] + dt * (phi * vel[i, c] + (1.0 - phi) * v0[i, c])
-                        if rotation:
-                            omega[i, c] = w0[i, c] + dt / inertia[i] * (phi * torque[i, c] + (1.0 - phi) * t0[i, c])
-                # fixed-point convergence: relative change of the end-of-step velocities
-                if change <= guards[G_TOL] * (vscale + 1e-300):
-                    break
-            hist[:, :] = hist0
-            whist[:, :] = whist0
-            if needs_rebuild(pos, ref_pos, skin):
-                start, nbj, shift, hist = _rebuild_any(sort, pos, image, vel, omega, force, torque, radius, mass,
-                                                       inertia, charge, gamma, fconst, frozen, whist, order,
-                                                       cutoff, skin, lo, length, periodic, start, nbj, hist,
-                                                       ref_pos)
-                nbuild += 1
-            _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt,
-                    model, cp, cpw, pair_laws, wall_laws, rotation, walls, whist, start, nbj, shift, hist,
-                    force, torque, diag, fbuf, tbuf, dbuf)
-        if diag[D_MAX_OVERLAP] > chunk_peaks[P_OVERLAP]:
-            chunk_peaks[P_OVERLAP] = diag[D_MAX_OVERLAP]
-        if diag[D_MAX_W2] > chunk_peaks[P_W2]:
-            chunk_peaks[P_W2] = diag[D_MAX_W2]
-        if diag[D_MAX_DAMP] > chunk_peaks[P_DAMP]:
-            chunk_peaks[P_DAMP] = diag[D_MAX_DAMP]
-        if diag[D_MAX_OVERLAP] > guards[G_MAX_OVERLAP]:
-            return BLOWUP_OVERLAP, s + 1, int(diag[D_MAX_OVERLAP_I]), start, nbj, shift, hist, ref_pos, nbuild, t_done
-        st, p = _check(pos, vel, radius, guards)
-        if st != OK:
+        # kick + drift + skin test in one pass, external forces with the zeroing in one pass: the
+        # arithmetic of _half_kick, the drift, needs_rebuild and _forces in the same order per particle,
+        # so the results are those of the separate loops bit for bit
+        if _kick_drift(pos, vel, omega, force, torque, mass, inertia, ref_pos, hdt, dt, rotation, skin):
+            start, nbj, shift, hist = _rebuild_any(pos, image, vel, omega, force, torque, radius, mass,
+                                                   inertia, charge, gamma, fconst, frozen, whist, order,
+                                                   cutoff, skin, lo, length, periodic, start, nbj, hist,
+                                                   ref_pos)
+            nbuild += 1
+        _begin_forces(vel, radius, charge, gamma, fconst, drag_mode, extp, seed, step, dt, rotation, force,
+                      torque, diag)
+        _interaction_forces(pos, vel, omega, radius, mass, charge, model, cp, cpw, pair_laws, wall_laws,
+                            rotation, walls, whist, start, nbj, shift, hist, force, torque, dt, diag, fbuf,
+                            tbuf, dbuf, pairs)
+        _half_kick(vel, omega, force, torque, mass, inertia, hdt, rotation)
+        t_done += dt
+        st, p, stop = _end_step(pos, vel, radius, guards, diag, chunk_peaks, t_done)
+        if stop:
             return st, s + 1, p, start, nbj, shift, hist, ref_pos, nbuild, t_done
-        if guards[G_T_STOP] > 0.0 and t_done >= guards[G_T_STOP]:
-            # the overdamped stepper's variable steps reached the requested time
-            return OK, s + 1, -1, start, nbj, shift, hist, ref_pos, nbuild, t_done
     if force_rebuild_at_end:
         # deterministic restart point: list rebuilt from these exact positions
-        start, nbj, shift, hist = _rebuild_any(sort, pos, image, vel, omega, force, torque, radius, mass, inertia,
+        start, nbj, shift, hist = _rebuild_any(pos, image, vel, omega, force, torque, radius, mass, inertia,
                                                charge, gamma, fconst, frozen, whist, order, cutoff, skin, lo,
                                                length, periodic, start, nbj, hist, ref_pos)
         nbuild += 1
     return OK, nsteps, -1, start, nbj, shift, hist, ref_pos, nbuild, t_done
+
+
+@njit(cache=True)
+def _run_overdamped(nsteps, dt, step0, phi, n_iter,
+                    pos, image, vel, omega, force, torque, radius, mass, inertia, charge, gamma, fconst, frozen,
+                    drag_mode, extp, seed, model, cp, cpw, pair_laws, wall_laws, rotation, walls, whist,
+                    start, nbj, shift, hist, ref_pos, cutoff, skin, lo, length, periodic, guards, diag,
+                    chunk_peaks, force_rebuild_at_end, fbuf, tbuf, dbuf, order):
+    """Up to ``nsteps`` steps of Brownian dynamics with the pair, wall and constant forces
+    (Euler-Maruyama, x' = x + F dt / gamma + sqrt(2 kB T dt / gamma) N(0, 1), the counter-based
+    numbers of the Brownian force; ``vel`` holds the drift F / gamma), the step shortened so that no
+    drift step exceeds ``guards[G_MAX_STEP]`` (m, 0 = off); with ``guards[G_STICK]`` a particle
+    reaching the substrate sticks there (``frozen`` = 1, no longer moved), else its centre is reflected
+    at z = R; the chunk ends early once the time reaches ``guards[G_T_STOP]``."""
+    n = pos.shape[0]
+    nbuild = 0
+    t_done = 0.0
+    bd_kT = extp[5]
+    # forces without drag and Brownian force (see _external)
+    extp = extp.copy()
+    extp[5] = 0.0
+    drag_mode = DRAG_NONE
+    for s in range(nsteps):
+        step = step0 + s + 1
+        dts = dt
+        if guards[G_MAX_STEP] > 0.0:
+            for i in range(n):
+                if frozen[i] == 0.0:
+                    f2 = force[i, 0] * force[i, 0] + force[i, 1] * force[i, 1] + force[i, 2] * force[i, 2]
+                    if f2 > 0.0:
+                        lim = guards[G_MAX_STEP] * gamma[i] / math.sqrt(f2)
+                        if lim < dts:
+                            dts = lim
+        stick = guards[G_STICK] != 0.0
+        bottom = guards[G_HAS_BOTTOM] != 0.0
+        for i in range(n):
+            if frozen[i] != 0.0:
+                continue
+            sd = math.sqrt(2.0 * bd_kT * dts / gamma[i]) if bd_kT > 0.0 else 0.0
+            for c in range(3):
+                v = force[i, c] / gamma[i]
+                vel[i, c] = v
+                pos[i, c] += v * dts
+                if sd > 0.0:
+                    pos[i, c] += sd * counter_normal(seed, step, 3 * i + c)
+            if bottom and pos[i, 2] <= radius[i]:
+                if stick:
+                    pos[i, 2] = radius[i]
+                    frozen[i] = 1.0
+                    vel[i, 0] = 0.0
+                    vel[i, 1] = 0.0
+                    vel[i, 2] = 0.0
+                else:
+                    # hard, frictionless substrate: reflecting boundary for the centre at z = R
+                    pos[i, 2] = 2.0 * radius[i] - pos[i, 2]
+        t_done += dts
+        if needs_rebuild(pos, ref_pos, skin):
+            start, nbj, shift, hist = _rebuild_any(pos, image, vel, omega, force, torque, radius, mass,
+                                                   inertia, charge, gamma, fconst, frozen, whist, order,
+                                                   cutoff, skin, lo, length, periodic, start, nbj, hist,
+                                                   ref_pos)
+            nbuild += 1
+        _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt,
+                model, cp, cpw, pair_laws, wall_laws, rotation, walls, whist, start, nbj, shift, hist,
+                force, torque, diag, fbuf, tbuf, dbuf)
+        for i in range(n):
+            if frozen[i] != 0.0:
+                force[i, 0] = 0.0
+                force[i, 1] = 0.0
+                force[i, 2] = 0.0
+        st, p, stop = _end_step(pos, vel, radius, guards, diag, chunk_peaks, t_done)
+        if stop:
+            return st, s + 1, p, start, nbj, shift, hist, ref_pos, nbuild, t_done
+    if force_rebuild_at_end:
+        start, nbj, shift, hist = _rebuild_any(pos, image, vel, omega, force, torque, radius, mass, inertia,
+                                               charge, gamma, fconst, frozen, whist, order, cutoff, skin, lo,
+                                               length, periodic, start, nbj, hist, ref_pos)
+        nbuild += 1
+    return OK, nsteps, -1, start, nbj, shift, hist, ref_pos, nbuild, t_done
+
+
+@njit(cache=True)
+def _run_phi(nsteps, dt, step0, phi, n_iter,
+             pos, image, vel, omega, force, torque, radius, mass, inertia, charge, gamma, fconst, frozen,
+             drag_mode, extp, seed, model, cp, cpw, pair_laws, wall_laws, rotation, walls, whist,
+             start, nbj, shift, hist, ref_pos, cutoff, skin, lo, length, periodic, guards, diag,
+             chunk_peaks, force_rebuild_at_end, fbuf, tbuf, dbuf, order):
+    """Up to ``nsteps`` steps of the seed's eq. 3.28-3.29 phi-scheme with ``n_iter`` fixed-point
+    iterations on the end-of-step forces (phi = 0: forward Euler)."""
+    n = pos.shape[0]
+    nbuild = 0
+    t_done = 0.0
+    # buffers (allocated once per chunk)
+    x0 = np.empty_like(pos)
+    v0 = np.empty_like(vel)
+    w0 = np.empty_like(omega)
+    f0 = np.empty_like(force)
+    t0 = np.empty_like(torque)
+    for s in range(nsteps):
+        step = step0 + s + 1
+        # phi-scheme: v1 = v0 + dt/m (phi F1 + (1-phi) F0); x1 = x0 + dt (phi v1 + (1-phi) v0)
+        x0[:, :] = pos
+        v0[:, :] = vel
+        w0[:, :] = omega
+        f0[:, :] = force
+        t0[:, :] = torque
+        hist0 = hist.copy()
+        whist0 = whist.copy()
+        for i in range(n):
+            for c in range(3):
+                vel[i, c] = v0[i, c] + dt / mass[i] * f0[i, c]
+                pos[i, c] = x0[i, c] + dt * v0[i, c]
+                if rotation:
+                    omega[i, c] = w0[i, c] + dt / inertia[i] * t0[i, c]
+        for it in range(n_iter if phi > 0.0 else 0):
+            hist[:, :] = hist0
+            whist[:, :] = whist0
+            _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt,
+                    model, cp, cpw, pair_laws, wall_laws, rotation, walls, whist, start, nbj, shift, hist,
+                    force, torque, diag, fbuf, tbuf, dbuf)
+            change = 0.0
+            vscale = 0.0
+            for i in range(n):
+                for c in range(3):
+                    vnew = v0[i, c] + dt / mass[i] * (phi * force[i, c] + (1.0 - phi) * f0[i, c])
+                    d = abs(vnew - vel[i, c])
+                    if d > change:
+                        change = d
+                    if abs(vnew) > vscale:
+                        vscale = abs(vnew)
+                    vel[i, c] = vnew
+                    pos[i, c] = x0[i, c] + dt * (phi * vel[i, c] + (1.0 - phi) * v0[i, c])
+                    if rotation:
+                        omega[i, c] = w0[i, c] + dt / inertia[i] * (phi * torque[i, c] + (1.0 - phi) * t0[i, c])
+            # fixed-point convergence: relative change of the end-of-step velocities
+            if change <= guards[G_TOL] * (vscale + 1e-300):
+                break
+        hist[:, :] = hist0
+        whist[:, :] = whist0
+        if needs_rebuild(pos, ref_pos, skin):
+            start, nbj, shift, hist = _rebuild_any(pos, image, vel, omega, force, torque, radius, mass,
+                                                   inertia, charge, gamma, fconst, frozen, whist, order,
+                                                   cutoff, skin, lo, length, periodic, start, nbj, hist,
+                                                   ref_pos)
+            nbuild += 1
+        _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt,
+                model, cp, cpw, pair_laws, wall_laws, rotation, walls, whist, start, nbj, shift, hist,
+                force, torque, diag, fbuf, tbuf, dbuf)
+        t_done += dt
+        st, p, stop = _end_step(pos, vel, radius, guards, diag, chunk_peaks, t_done)
+        if stop:
+            return st, s + 1, p, start, nbj, shift, hist, ref_pos, nbuild, t_done
+    if force_rebuild_at_end:
+        start, nbj, shift, hist = _rebuild_any(pos, image, vel, omega, force, torque, radius, mass, inertia,
+                                               charge, gamma, fconst, frozen, whist, order, cutoff, skin, lo,
+                                               length, periodic, start, nbj, hist, ref_pos)
+        nbuild += 1
+    return OK, nsteps, -1, start, nbj, shift, hist, ref_pos, nbuild, t_done
+
+
+#: the stepper kernel of each integrator code (DEMSystem.run)
+STEPPERS = {VERLET: _run_verlet, PHI_SCHEME: _run_phi, OVERDAMPED: _run_overdamped}
 
 
 # --------------------------------------------------------------------------- system
@@ -696,7 +760,7 @@ class DEMSystem:
     def compute_forces(self):
         """Evaluate forces and torques at the current state (updates contact history)."""
         drag_mode, extp = self.drag_mode, self.extp
-        if self.integrator == OVERDAMPED:  # as in _run_chunk: no drag or Brownian force
+        if self.integrator == OVERDAMPED:  # as in _run_overdamped: no drag or Brownian force
             drag_mode, extp = DRAG_NONE, self.extp.copy()
             extp[5] = 0.0
         _forces(self.pos, self.vel, self.omega, self.radius, self.mass, self.charge, self.gamma, self.fconst,
@@ -705,10 +769,12 @@ class DEMSystem:
                 self.shift, self.hist, self.force, self.torque, self.diag, *self._buffers())
 
     def _buffers(self):
+        """``(fbuf, tbuf, dbuf)`` of the threaded pair kernel (T > 1 threads), or ``(None, None, None)`` for
+        the serial one (see :func:`_interaction_forces`)."""
         t = int(self.threads)
         if t > 1:
             return np.zeros((t, self.n, 3)), np.zeros((t, self.n, 3)), np.zeros((t, D_SIZE))
-        return np.zeros((1, 0, 3)), np.zeros((1, 0, 3)), np.zeros((1, D_SIZE))
+        return None, None, None
 
     @property
     def unwrapped(self):
@@ -732,6 +798,8 @@ class DEMSystem:
         overdamped stepper, whose steps vary in length).
         """
         self.chunk_peaks = np.zeros(3)
+        stepper = STEPPERS[self.integrator]
+        fbuf, tbuf, dbuf = self._buffers()  # once per call (the threaded kernel zeroes them per force pass)
         left = int(nsteps)
         status = OK
         t0 = self.t
@@ -744,7 +812,7 @@ class DEMSystem:
             k = left if chunker is None else min(left, chunker.size)
             if chunker is not None:
                 chunker.start()
-            out = _run_chunk(k, self.dt, self.step, self.integrator, self.phi, self.n_iter,
+            out = stepper(k, self.dt, self.step, self.phi, self.n_iter,
                              self.pos, self.image, self.vel, self.omega, self.force, self.torque, self.radius,
                              self.mass, self.inertia, self.charge, self.gamma, self.fconst, self.frozen,
                              self.drag_mode,
@@ -752,8 +820,8 @@ class DEMSystem:
                              self.wall_laws, self.rotation, self.walls, self.whist, self.start, self.nbj,
                              self.shift, self.hist, self.ref_pos, self.cutoff, self.skin, self.lo, self.length,
                              self.periodic, self.guards, self.diag, self.chunk_peaks,
-                             bool(rebuild_at_end) and k == left, int(self.threads), self.particle_order,
-                             self.sort)
+                             bool(rebuild_at_end) and k == left, fbuf, tbuf, dbuf,
+                             self.particle_order if self.sort else None)
             status, done, part, self.start, self.nbj, self.shift, self.hist, self.ref_pos, nb, t_done = out
             if chunker is not None:
                 chunker.done(done)   # the chunker sizes calls in steps (k above), so it is told steps
