@@ -95,7 +95,10 @@ def _chol_inv_diag(L, P, ia, y):
 @nb.njit(cache=True)
 def _erf_profile(n0, n, x, s, e, de_dx, de_ds):
     # pixel-integrated unit Gaussian over pixels n0..n0+n-1 centred at x, width s, and its derivatives in x
-    # and s; each pixel edge's erf and exp are computed once (an edge is shared by two pixels)
+    # and s. Each pixel edge's erf is computed once (an edge is shared by two pixels), and the Gaussian at
+    # the edges by the recurrence exp(-(b+1)^2 c) = exp(-b^2 c) exp(-(2b+1) c), whose factor is itself
+    # multiplied by exp(-2c) from edge to edge (two products instead of an exp; direct where the factors
+    # would leave the floating-point range)
     inv = 1.0 / (_SQRT2 * s)
     c2 = 1.0 / (2.0 * s * s)
     k1 = 1.0 / (_SQRT2PI * s)
@@ -103,10 +106,17 @@ def _erf_profile(n0, n, x, s, e, de_dx, de_ds):
     b = n0 - x - 0.5
     eb = math.erf(b * inv)
     gb = math.exp(-b * b * c2)
+    rec = b * b * c2 < 600.0 and (b + n) * (b + n) * c2 < 600.0 and abs(2.0 * b + 1.0) * c2 < 600.0
+    q = math.exp(-(2.0 * b + 1.0) * c2) if rec else 0.0
+    rr = math.exp(-2.0 * c2)
     for i in range(n):
         a = b + 1.0
         ea = math.erf(a * inv)
-        ga = math.exp(-a * a * c2)
+        if rec:
+            ga = gb * q
+            q *= rr
+        else:
+            ga = math.exp(-a * a * c2)
         e[i] = 0.5 * (ea - eb)
         de_dx[i] = -(ga - gb) * k1
         de_ds[i] = -(a * ga - b * gb) * k2
@@ -739,14 +749,25 @@ def _neighbour_tasks(rows, cols, radius: float, max_group: int):
     if n < 2 or max_group < 2:
         return empty
     pts = np.c_[cols, rows].astype(float)
-    d, idx = cKDTree(pts).query(pts, k=min(max_group, n), distance_upper_bound=radius)
+    d, idx = cKDTree(pts, balanced_tree=False, compact_nodes=False).query(pts, k=min(max_group, n),
+                                                                           distance_upper_bound=radius)
     has = np.isfinite(d[:, 1])
     if not has.any():
         return empty
     grouped[has] = True
     idx = np.where(np.isfinite(d), idx, n)[has]            # missing neighbours -> n (sorted last)
     keys = np.sort(idx, axis=1)
-    uniq, inv = np.unique(keys, axis=0, return_inverse=True)
+    K = keys.shape[1]
+    if (n + 1.0) ** K < 2.0 ** 62:
+        # each sorted group as one integer in base n + 1 (same order as the rows): a 1-D unique is ~10x
+        # faster than np.unique(axis=0)
+        code = np.zeros(len(keys), np.int64)
+        for j in range(K):
+            code = code * (n + 1) + keys[:, j]
+        _, first, inv = np.unique(code, return_index=True, return_inverse=True)
+        uniq = keys[first]
+    else:
+        uniq, inv = np.unique(keys, axis=0, return_inverse=True)
     inv = np.asarray(inv).ravel()
     counts = (uniq < n).sum(axis=1)
     ptr = np.zeros(len(uniq) + 1, np.int64)

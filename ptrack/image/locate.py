@@ -29,6 +29,7 @@ LOCATE_COLUMNS = ("x_px", "y_px", "mass", "size", "ecc", "signal", "photons", "b
 #: image polarity (+1 bright, -1 dark particles).
 MULTISCALE_COLUMNS = ("snr", "method", "polarity")
 _METHODS = ("gauss", "radial")
+_METHOD_DTYPE = pd.CategoricalDtype(_METHODS)
 #: Fitted Gaussian width (px) from which an image is not taken for a Gaussian spot: wider than the
 #: coarsest default scale, it is a defocused image or a large particle, and its centre comes from the free
 #: radial-profile fit (on a true Gaussian the profile fit is ~1.5x less precise than the Gaussian fit: it
@@ -309,7 +310,7 @@ def _nearest_other(rows, cols):
     from scipy.spatial import cKDTree
 
     pts = np.c_[cols, rows].astype(float)
-    return cKDTree(pts).query(pts, k=2)[0][:, 1]
+    return cKDTree(pts, balanced_tree=False, compact_nodes=False).query(pts, k=2)[0][:, 1]
 
 
 def _locate_multiscale(frame, snr=None, gain=1.0, offset=0.0, read_noise=0.0, brightfield=None, median=True,
@@ -325,15 +326,21 @@ def _locate_multiscale(frame, snr=None, gain=1.0, offset=0.0, read_noise=0.0, br
     rows, cols, scale, polarity = det["rows"], det["cols"], det["scale"], det["polarity"]
     n = len(rows)
     # background-subtracted image, particles positive (dark particles: the background minus the frame)
-    f32 = raw.astype(np.float32)
     bgmap, nzmap = det["background_map"], det["noise_map"]
-    sub = (f32 - bgmap) if polarity > 0 else (bgmap - f32)
-    noise = float(np.median(nzmap))
+    sub = np.subtract(raw, bgmap, dtype=np.float32) if polarity > 0 else np.subtract(bgmap, raw, dtype=np.float32)
+    # the frame's noise (counts): the median of its noise map, measured once per map (frames that share the
+    # maps through the cache share it; a full-frame median costs as much as the fits of a sparse frame)
+    if cache is not None and cache.get("locate_noise", (None,))[0] is nzmap:
+        noise = cache["locate_noise"][1]
+    else:
+        noise = float(np.median(nzmap))
+        if cache is not None:
+            cache["locate_noise"] = (nzmap, noise)
     if polarity > 0 and median and n:
         # isolated hot pixels would pull the likelihood fit of the raw counts: replaced by their 3x3 median
         # (the rule of repair_hot_pixels, 8 noise sigmas, tested only inside the fit windows)
         half_max = int(max(3, math.ceil(3 * float(np.max(scale))))) + 1
-        hr, hc, hv = _hot_in_rois(raw, bgmap, 1, rows, cols, half_max, 8.0 * noise_sigma(sub))
+        hr, hc, hv = _hot_in_rois(raw, bgmap, 1, rows, cols, half_max, 8.0 * noise)
         if len(hr):
             raw = np.array(raw, copy=True)
             raw[np.asarray(hr), np.asarray(hc)] = np.asarray(hv)
@@ -431,6 +438,6 @@ def _locate_multiscale(frame, snr=None, gain=1.0, offset=0.0, read_noise=0.0, br
         "size": size[k], "ecc": ecc[k], "signal": det["signal"][k], "photons": photons[k], "bg_photons": bgp[k],
         "sigma_x_px": np.sqrt(np.abs(vx[k])), "sigma_y_px": np.sqrt(np.abs(vy[k])), "snr": det["snr"][k],
         # a categorical: building a string column costs more than the rest of the table
-        "method": pd.Categorical.from_codes(ring[k].astype(np.int8), _METHODS),
+        "method": pd.Categorical.from_codes(ring[k].astype(np.int8), dtype=_METHOD_DTYPE),
         "polarity": np.full(len(k), polarity, np.int8),
-    })
+    }, copy=False)
