@@ -65,3 +65,92 @@ def test_polarity_from_data_and_sizes_per_particle(sign):
     order = np.argsort(d["cols"] + 1000 * (d["rows"] > 80))
     sizes = d["scale"][order]
     assert sizes[:2].max() < sizes[2:].min()
+
+
+# ---------------------------------------------------------------------------------------------
+# ring centres by the rim's vote (ptrack.image.rings)
+# ---------------------------------------------------------------------------------------------
+
+def _ring_image(x0, y0, R, shape, photons=4000.0, blur=0.9):
+    """A defocused fluorescent bead: half its light in a uniform disk of radius R, half in a rim at R (px)."""
+    from scipy.special import erfc
+
+    yy, xx = np.mgrid[:shape[0], :shape[1]]
+    r = np.hypot(xx - x0, yy - y0)
+    disk = 0.5 * erfc((r - R) / (np.sqrt(2) * blur))
+    rim = np.exp(-(r - R) ** 2 / (2 * blur ** 2))
+    return photons * (0.5 * disk / disk.sum() + 0.5 * rim / rim.sum())
+
+
+@pytest.mark.parametrize("kind", ["poisson", "scmos", "uneven"])
+def test_ring_maps_alone_keep_their_false_alarm_rate_on_empty_frames(kind):
+    """The ring maps, run on empty frames whatever the gate says: at most their share of the stated rate."""
+    import cv2
+
+    from ptrack.image.detect import DEFAULT_SCALES, FALSE_ALARM_RATE, RING_RATE_SHARE, bandpass, noise_maps
+    from ptrack.image.rings import RING_RADII, ring_maps_candidates, ring_scale
+
+    rng = np.random.default_rng(3)
+    f = _empty(kind, rng).astype(np.float32)
+    work = cv2.medianBlur(f, 3)
+    bg, nz = noise_maps(f, tile=64, step=2)
+    n = 0
+    for pol in (1, -1):
+        bands = {s: pol * bandpass(work, s) for s in {ring_scale(R, DEFAULT_SCALES) for R in RING_RADII}}
+        n += len(ring_maps_candidates(bands, pol * (f - bg), nz, RING_RATE_SHARE * FALSE_ALARM_RATE,
+                                      DEFAULT_SCALES)["rows"])
+    # 2 x 1 Mpx examined at 0.5e-6 per px: ~1 expected (the bound is conservative); refuse 3x the rate
+    assert n / (2 * f.size) < 3 * RING_RATE_SHARE * FALSE_ALARM_RATE, n
+
+
+def test_defocused_rings_give_one_detection_at_each_centre():
+    """Rings of radius 5-10 px (recall 0 without the ring maps: every blob detection lands on a rim)."""
+    rng = np.random.default_rng(4)
+    shape = (240, 240)
+    truth = [(40.3, 42.6, 9.0), (120.7, 40.2, 7.0), (200.2, 41.5, 5.0), (41.8, 120.4, 10.0),
+             (119.6, 121.3, 9.0), (199.4, 118.8, 6.0), (80.5, 199.7, 8.0), (160.1, 200.3, 9.0)]
+    lam = np.full(shape, 30.0)
+    for x, y, R in truth:
+        lam += _ring_image(x, y, R, shape)
+    d = detect(rng.poisson(lam).astype(np.float32))
+    assert d["polarity"] == 1
+    found = np.c_[d["cols"], d["rows"]].astype(float)
+    assert len(found) == len(truth), found
+    for x, y, R in truth:
+        dist = np.hypot(found[:, 0] - x, found[:, 1] - y)
+        k = int(np.argmin(dist))
+        assert dist[k] < 1.5 and d["ring"][k], (x, y, R, found[k])
+
+
+def test_blob_frames_do_not_call_the_ring_maps(monkeypatch):
+    """Spots of several sizes are round, not rim pieces: the gate keeps the ring maps (and their cost) away."""
+    import ptrack.image.detect as D
+
+    called = []
+    orig = D.ring_maps_candidates
+    monkeypatch.setattr(D, "ring_maps_candidates", lambda *a, **k: called.append(1) or orig(*a, **k))
+    rng = np.random.default_rng(5)
+    shape = (256, 256)
+    lam = np.full(shape, 40.0)
+    for k in range(36):
+        x, y = 20 + 40 * (k % 6) + rng.uniform(-3, 3), 20 + 40 * (k // 6) + rng.uniform(-3, 3)
+        s = (1.0, 1.5, 2.5)[k % 3]
+        lam += 3000 * _spot(x, y, s, shape)
+    d = detect(rng.poisson(lam).astype(np.float32))
+    assert len(d["rows"]) == 36 and not d["ring"].any()
+    assert not called
+
+
+def test_ring_support_wants_the_ring_all_round():
+    """A bright spot at distance R from a point covers one or two sectors of its annulus: not a ring."""
+    from ptrack.image.rings import ring_support
+
+    shape = (80, 80)
+    ring = _ring_image(40.0, 40.0, 8.0, shape)
+    spot = 2000 * _spot(48.0, 40.0, 1.2, shape)
+    args = dict(rows=[40], cols=[40], radius=[8.0], width=[2.0], sign=[1.0], noise=[1.0])
+    assert ring_support(ring, **args)[0]
+    assert not ring_support(spot, **args)[0]
+    # a dark ring (negative in the image) is a ring of sign -1, not of sign +1
+    assert ring_support(-ring, **dict(args, sign=[-1.0]))[0]
+    assert not ring_support(-ring, **args)[0]

@@ -357,7 +357,8 @@ def _suppress(rows, cols, scale, order, radius_factor, min_radius, ring, reach):
     # a finer one is a piece of a coarse image (a ring's necklace), a coarser one the blend of finer
     # images (two spots seen as one large blob). Of similar scales, both are kept unless closer than half
     # the FWHM (1.18 scale), where two spots merge into one maximum anyway (two spots 3-4 px apart must
-    # both be kept, or D is biased low at close approach)
+    # both be kept, or D is biased low at close approach). A ring found by the rim's vote (reach > 0: its
+    # radius + rim) holds everything within its reach, of any scale
     n = rows.shape[0]
     keep = np.zeros(n, np.bool_)
     kept = np.empty(n, np.int64)
@@ -369,8 +370,16 @@ def _suppress(rows, cols, scale, order, radius_factor, min_radius, ring, reach):
             j = kept[b]
             lo = min(scale[i], scale[j])
             hi = max(scale[i], scale[j])
-            if ring[j] and scale[i] <= scale[j]:
-                rad = max(reach[j], min_radius)     # anything inside a kept ring is the ring
+            if reach[j] > 0 and reach[i] > 0:
+                # two rings of the rim's vote whose circles overlap share the rim's votes: the weaker is dropped
+                # (reach = radius + 2.5 px: centres closer than the sum of the radii + 1 px)
+                rad = max(reach[j], reach[i] + reach[j] - 4.0)
+            elif reach[j] > 0:
+                rad = reach[j]                      # a ring found by the rim's vote: anything inside it is the ring
+            elif reach[i] > 0 and ring[j]:
+                rad = reach[i]                      # ... and it is the same image as a kept ring inside it
+            elif ring[j] and scale[i] <= scale[j]:
+                rad = max(radius_factor * scale[j], min_radius)     # anything inside a kept ring is the ring
             elif hi > 1.5 * lo:
                 rad = max(radius_factor * hi, min_radius)
             else:
@@ -540,7 +549,7 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         _ring_test(fr, rb, rn, float(polarity), rows[coarse], cols[coarse], sc[coarse].astype(np.float64), rflag)
         ring[coarse] = rflag
     sig = amp[kk, np.arange(len(rows))] if len(rows) else np.zeros(0)
-    reach = np.zeros(len(rows))     # radius (px) within which a ring's own pieces are dropped (0: suppress x scale)
+    reach = np.zeros(len(rows))     # ring-map candidates: radius (px) within which anything is the ring (0: others)
     if rings and len(rows) >= 3:
         # rings: a centre vote from the rim (ptrack.image.rings), computed where the blob candidates say the
         # frame holds rings (rim pieces are ridges, faint centres sit in rings of the opposite sign)
@@ -564,7 +573,6 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         # rings first (their necklace of fine-scale maxima is often stronger than the ring's own response),
         # then by decreasing SNR
         order = np.lexsort((-z, ~ring)).astype(np.int64)
-        reach = np.where(reach > 0, reach, float(suppress) * sc)
         keep = _suppress(rows, cols, sc.astype(np.float64), order, float(suppress), 1.5, ring, reach.astype(np.float64))
         rows, cols, sc, z, kk, sig, ring = rows[keep], cols[keep], sc[keep], z[keep], kk[keep], sig[keep], ring[keep]
     return {"rows": rows, "cols": cols, "scale": sc, "snr": z, "signal": np.asarray(sig, np.float64),
