@@ -553,8 +553,8 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
     if rings and len(rows) >= 3:
         # rings: a centre vote from the rim (ptrack.image.rings), computed where the blob candidates say the
         # frame holds rings (rim pieces are ridges, faint centres sit in rings of the opposite sign)
-        J = polarity * (np.asarray(frame, np.float32) - rb)
-        if ring_evidence(b1s, b2s, float(polarity), J, rn, rows, cols, kk):
+        if ring_evidence(b1s, b2s, float(polarity), frame, rb, rn, rows, cols, kk):
+            J = polarity * (np.asarray(frame, np.float32) - rb)
             need = sorted({ring_scale(R, scales) for R in RING_RADII})
             bands = {s: (blurs[s] - blurs[_SURROUND * s]) * np.float32(polarity) for s in need}
             rc = ring_maps_candidates(bands, J, rn, RING_RATE_SHARE * float(rate), scales, edge=int(edge),

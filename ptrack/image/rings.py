@@ -392,13 +392,16 @@ def _ridge(b1, b2, sign, rows, cols, out):
         out[k] = l1 < 0 and l2 > 0.5 * l1
 
 
-def ring_evidence(b1s, b2s, sign, J, noise_pix, rows, cols, kk, min_count: int = 3, min_fraction: float = 0.2):
+def ring_evidence(b1s, b2s, sign, frame, background, noise_pix, rows, cols, kk, min_count: int = 3,
+                  min_fraction: float = 0.2, max_dip_tests: int = 64):
     """Whether the blob candidates of a frame say it holds rings (so the ring maps are worth their cost).
 
     Rim pieces are ridges (one curvature below half the other at the
     maximum of the band-passed image); a faint centre sits in a ring of the
-    opposite sign (:func:`ptrack.image.radial.has_dip`). Either must hold for
-    at least ``min_count`` candidates and ``min_fraction`` of them.
+    opposite sign (:func:`ptrack.image.radial.has_dip`, on at most
+    ``max_dip_tests`` candidates spread over the list, each on its own
+    21 x 21 px patch: no full-frame image is made). Either must hold for at
+    least ``min_count`` candidates and ``min_fraction`` of those tested.
 
     Parameters
     ----------
@@ -406,8 +409,8 @@ def ring_evidence(b1s, b2s, sign, J, noise_pix, rows, cols, kk, min_count: int =
         ``G(s) * frame`` and ``G(2 s) * frame`` per detector scale.
     sign : float
         Polarity (+1 bright particles, -1 dark).
-    J, noise_pix : 2D arrays
-        Background-subtracted frame (particles positive) and its noise (counts).
+    frame, background, noise_pix : 2D arrays
+        The frame, its background map and its noise map (counts).
     rows, cols : ndarray of int
         Candidates (local maxima above the threshold).
     kk : ndarray of int
@@ -422,7 +425,7 @@ def ring_evidence(b1s, b2s, sign, J, noise_pix, rows, cols, kk, min_count: int =
     n = len(rows)
     if n < min_count:
         return False
-    H, W = J.shape
+    H, W = frame.shape
     inner = (rows >= 1) & (cols >= 1) & (rows < H - 1) & (cols < W - 1)
     ridge = np.zeros(n, np.bool_)
     for i in range(len(b1s)):
@@ -431,8 +434,16 @@ def ring_evidence(b1s, b2s, sign, J, noise_pix, rows, cols, kk, min_count: int =
             out = np.zeros(len(q), np.bool_)
             _ridge(b1s[i], b2s[i], float(sign), rows[q], cols[q], out)
             ridge[q] = out
-    need = max(min_count, min_fraction * n)
-    if ridge.sum() >= need:
+    if ridge.sum() >= max(min_count, min_fraction * n):
         return True
-    dip = has_dip(J, cols.astype(float), rows.astype(float), noise_pix[rows, cols], np.full(n, 10.0))
-    return bool(dip.sum() >= need)
+    m = min(n, int(max_dip_tests))
+    sel = np.linspace(0, n - 1, m).astype(np.int64)
+    h = 10
+    off = np.arange(-h, h + 1)
+    rr = np.clip(rows[sel][:, None, None] + off[None, :, None], 0, H - 1)
+    cc = np.clip(cols[sel][:, None, None] + off[None, None, :], 0, W - 1)
+    patches = float(sign) * (np.asarray(frame, np.float32)[rr, cc] - background[rr, cc])
+    mosaic = np.ascontiguousarray(patches.transpose(1, 0, 2).reshape(2 * h + 1, (2 * h + 1) * m), np.float32)
+    dip = has_dip(mosaic, h + (2 * h + 1) * np.arange(m, dtype=float), np.full(m, float(h)),
+                  noise_pix[rows[sel], cols[sel]], np.full(m, float(h)))
+    return bool(dip.sum() >= max(min_count, min_fraction * m))
