@@ -28,6 +28,12 @@ drowns the faint particles or lets the bright regions through. Here:
    response; weaker candidates inside a stronger one's image (2 s of its
    scale) are dropped, so a ring or a defocused image gives one detection,
    not a necklace.
+6. Rings: when the candidates say the frame holds rings (rim pieces are
+   ridges; faint centres sit in rings of the opposite sign), the rim votes
+   for its centre (:mod:`ptrack.image.rings`: circle means of the band at
+   radii 4-12.7 px, both signs, their own noise maps and false-alarm
+   threshold, an all-round sector test). A ring so found holds every other
+   candidate within its radius + 2.5 px.
 
 Pixel coordinates follow trackpy (``x`` columns, ``y`` rows, pixel centres
 at integers).
@@ -446,7 +452,9 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         ``snr`` (best response, noise units), ``signal`` (band-passed height,
         counts, polarity applied), ``polarity`` (+1/-1), ``threshold`` (u),
         ``noise`` (median local noise of the finest scale, counts),
-        ``ring`` (bool: an image with a hole, e.g. a defocused ring),
+        ``ring`` (bool: an image with a hole, e.g. a defocused ring, or a
+        ring found by the rim's vote, whose ``scale`` is then 0.4 x its radius
+        and ``snr``, ``signal`` those of its circle mean),
         ``scales``, ``background_map`` and ``noise_map`` (the frame's local
         median and noise, counts, full size).
     """

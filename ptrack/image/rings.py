@@ -75,26 +75,39 @@ def _taps(R: float):
 
 
 @nb.njit(cache=True)
-def _circle_grid(B, dr, dc, wt, edge, stride, out):
-    # out[i, j] = sum_t wt[t] B[i stride + dr[t], j stride + dc[t]]; 0 within `edge` px of the border.
-    # Row by row, tap by tap: the inner loop runs along one row of B (cache-friendly)
-    h, w = B.shape
+def _circle_grid(P, h, w, dr, dc, wt, edge, out):
+    # out[i, j] = sum_t wt[t] B[2 i + dr[t], 2 j + dc[t]]; 0 within `edge` px of the border. B is given by its
+    # 4 polyphase components P[2 a + b] = B[a::2, b::2] (zero-padded), so that every tap reads one row of one
+    # component contiguously (the inner loop vectorises)
     gh, gw = out.shape
     nt = dr.shape[0]
-    j0 = (edge + stride - 1) // stride
-    j1 = (w - edge - 1) // stride          # last grid column with c < w - edge
+    j0 = (edge + 1) // 2
+    j1 = (w - edge - 1) // 2               # last grid column with 2 j < w - edge
     for i in range(gh):
-        r = i * stride
+        r = 2 * i
         for j in range(gw):
             out[i, j] = 0.0
         if r < edge or r >= h - edge or j1 < j0:
             continue
         for t in range(nt):
-            row = B[r + dr[t]]
-            a = wt[t]
-            d = dc[t]
+            a = dr[t] & 1
+            b = dc[t] & 1
+            row = P[2 * a + b, i + (dr[t] >> 1)]
+            sh = dc[t] >> 1
+            wv = wt[t]
             for j in range(j0, j1 + 1):
-                out[i, j] += a * row[j * stride + d]
+                out[i, j] += wv * row[j + sh]
+
+
+def _polyphase(B):
+    """The 4 polyphase components of a frame, ``P[2 a + b] = B[a::2, b::2]``, zero-padded to one shape."""
+    H, W = B.shape
+    P = np.zeros((4, (H + 1) // 2, (W + 1) // 2), np.float32)
+    for a in range(2):
+        for b in range(2):
+            c = B[a::2, b::2]
+            P[2 * a + b, :c.shape[0], :c.shape[1]] = c
+    return P
 
 
 @nb.njit(cache=True)
@@ -328,11 +341,12 @@ def ring_maps_candidates(bands, J, noise_pix, rate: float, scales, radii=RING_RA
     best = np.zeros((gh, gw), np.float32)
     arg = np.zeros((gh, gw), np.int8)
     invs = []
+    poly = {s: _polyphase(bands[s]) for s in {s for _, s in pairs}}
     for k, (R, s) in enumerate(pairs):
         dr, dc, wt = _taps(R)
         g = np.empty((gh, gw), np.float32)
         e = int(math.ceil(R)) + 1 + edge
-        _circle_grid(bands[s], dr, dc, wt, e, _STRIDE, g)
+        _circle_grid(poly[s], H, W, dr, dc, wt, e, g)
         # the map's noise over tiles holding ~100 of its correlation areas (side >= 12 R)
         t_side = max(int(tile), int(12 * R), int(math.sqrt(H * W / 64.0)))
         # (every other grid point: the map is smooth over a few px, ~1000 samples per tile remain)
