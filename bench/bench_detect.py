@@ -1,7 +1,8 @@
 """Knob-free detection on images not made by our renderer, beside trackpy and scikit-image.
 
 1. Empty frames (Poisson, dim Poisson, sCMOS-like, uneven illumination), 1024^2:
-   false detections per 10^6 px for ptrack's default (stated rate 1e-6) and
+   false detections per 10^6 px for ptrack's default (stated rate 1e-6), for
+   its ring maps alone (run whatever their gate says; stated 0.5e-6) and
    for trackpy.locate with its defaults (minmass=None: trackpy's "ghost
    particles in frames where there is nothing").
 2. The simple image model of tests/test_real_images.py (Gaussian spots of
@@ -62,6 +63,25 @@ def _trackpy_best(frame, xs, ys):
     return best[1:]
 
 
+def _ring_maps_alone(f):
+    # ring candidates of both polarities on frame f, the gate bypassed: (count, CPU seconds)
+    import cv2
+
+    from ptrack.image.detect import DEFAULT_SCALES, FALSE_ALARM_RATE, RING_RATE_SHARE, bandpass, noise_maps
+    from ptrack.image.rings import RING_RADII, ring_maps_candidates, ring_scale
+
+    work = cv2.medianBlur(f, 3)
+    bg, nz = noise_maps(f, tile=64, step=2)
+    n, t = 0, 0.0
+    for pol in (1, -1):
+        bands = {s: pol * bandpass(work, s) for s in {ring_scale(R, DEFAULT_SCALES) for R in RING_RADII}}
+        c = time.process_time()
+        n += len(ring_maps_candidates(bands, pol * (f - bg), nz, RING_RATE_SHARE * FALSE_ALARM_RATE,
+                                      DEFAULT_SCALES)["rows"])
+        t += time.process_time() - c
+    return n, t
+
+
 def models(rng):
     shape = (192, 192)
     yy, xx = np.mgrid[:shape[0], :shape[1]]
@@ -101,15 +121,23 @@ def main():
     rng = np.random.default_rng(1)
     print("## 1. Empty 1024^2 frames: false detections per 10^6 px (2 frames each; machine shared, timings not used)")
     print("command: .venv/bin/python bench/bench_detect.py")
-    print(f"{'background':>14} {'ptrack default':>15} {'trackpy d=7 (defaults)':>23}")
+    print("    'ring maps alone': ptrack.image.rings.ring_maps_candidates run on the frame whatever its gate says (both")
+    print("    polarities; stated 0.5e-6 per px), and its CPU time per 10^6 px")
+    print(f"{'background':>14} {'ptrack default':>15} {'trackpy d=7 (defaults)':>23} {'ring maps alone':>16} "
+          f"{'CPU ms/Mpx':>10}")
     for kind in ("poisson", "poisson_dim", "scmos", "uneven"):
-        n_ours = n_tp = npx = 0
+        n_ours = n_tp = npx = n_ring = 0
+        t_ring = 0.0
         for _ in range(2):
             f = _empty(kind, rng)
             n_ours += len(locate(f.astype(np.uint16), offset=100.0 if kind == "scmos" else 0.0))
             n_tp += len(_trackpy(f.astype(np.uint16), 7, None, False))
             npx += f.size
-        print(f"{kind:>14} {n_ours / npx * 1e6:15.1f} {n_tp / npx * 1e6:23.1f}")
+            n, t = _ring_maps_alone(f.astype(np.float32))
+            n_ring += n
+            t_ring += t
+        print(f"{kind:>14} {n_ours / npx * 1e6:15.1f} {n_tp / npx * 1e6:23.1f} {n_ring / (2 * npx) * 1e6:16.2f} "
+              f"{1e3 * t_ring / (2 * npx / 1e6):10.0f}")
 
     print("\n## 2. Image model not made by our renderer (tests/test_real_images.py), one 192^2 frame each")
     print(f"{'image':>44} | {'ptrack: rec':>11} {'prec':>5} {'RMSE':>6} {'/CRB':>5} | {'trackpy best: rec':>17} "
