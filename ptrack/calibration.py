@@ -36,6 +36,8 @@ _COMMON_WINDOW = True     # compare the pages around the best one on one window 
 _COMMON_PAGES = 2         # pages either side of the best one (4: diffusion3d a little better, a close pair worse)
 _WIDE_MASK = 1 / 8         # second candidate-mask smoothing, x the largest template side (see locate_3d)
 _REFINE_SCALE = 1 / 1.2    # refine only particles whose 95 % light discs overlap (see build_calibration)
+_NEIGHBOUR_WEIGHT = None   # re-matches in locate_3d's refine passes weight each pixel by 1 / (1 + (b N / noise)^2),
+                           # N the sum of |model| of the other particles there (see _weighted_ncc); None: off
 __all__ = ["Calibration", "read_calib_z", "build_calibration", "load_calibration", "prepare_gdpt", "check_pixel_size",
            "detect_blobs", "match_templates", "locate_3d", "locate_frame_3d"]
 
@@ -530,6 +532,36 @@ def _masked_ncc(win, t, r0, r1, c0, c1):
     return out.astype(np.float32)
 
 
+def _weighted_ncc(win, wts, t):
+    """Weighted zero-normalised cross-correlation of template ``t`` over ``win`` (the TM_CCOEFF_NORMED map shape).
+
+    ``wts`` (the shape of ``win``, frame pixels) weights every pixel of the
+    window in the means, covariance and variances at each shift: pixels
+    dominated by a neighbour's subtracted model, whose leftovers would pull
+    the match, count less. Six whole-window correlations (sums of w t I,
+    w t, w t^2, w, w I, w I^2 at every shift).
+    """
+    import cv2
+
+    t = np.ascontiguousarray(t, np.float32)
+    w = np.ascontiguousarray(wts, np.float32)
+    wi = w * win
+    one = np.ones_like(t)
+    A = cv2.matchTemplate(wi, t, cv2.TM_CCORR).astype(np.float64)
+    B = cv2.matchTemplate(w, t, cv2.TM_CCORR).astype(np.float64)
+    C = cv2.matchTemplate(w, t * t, cv2.TM_CCORR).astype(np.float64)
+    S = cv2.matchTemplate(w, one, cv2.TM_CCORR).astype(np.float64)
+    SI = cv2.matchTemplate(wi, one, cv2.TM_CCORR).astype(np.float64)
+    SI2 = cv2.matchTemplate(wi * win, one, cv2.TM_CCORR).astype(np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cov = A - B * SI / S
+        vt = C - B * B / S
+        vi = SI2 - SI * SI / S
+        den = np.sqrt(np.maximum(vt, 0.0) * np.maximum(vi, 0.0))
+        out = np.where((S > 0) & (den > 0), cov / den, np.nan)
+    return out.astype(np.float32)
+
+
 def _outside_fraction(t, r0, r1, c0, c1) -> float:
     """Fraction of a template's signal (sum of |t|) outside rows r0:r1, cols c0:c1."""
     a = np.abs(t)
@@ -538,7 +570,7 @@ def _outside_fraction(t, r0, r1, c0, c1) -> float:
 
 
 def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm_drop, coarse: int = 0,
-               masked: bool = False, fine_margin: int | None = None, common: bool | None = None):
+               masked: bool = False, fine_margin: int | None = None, common: bool | None = None, weight=None):
     """Best template, z, sub-pixel x, y and Cm of the particle image near frame pixel (r, c).
 
     ``masked``: for an image cut by the frame edge, correlate only the
@@ -546,6 +578,10 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
     ``common`` (default ``_COMMON_WINDOW``): the pages within 2 of the best
     are correlated again, each cropped to the smallest of their sizes, so
     that Cm(z) compares them on one window.
+
+    ``weight``: (N, b, noise), N an array the shape of ``padded`` (the
+    summed |model| of the neighbours): the correlations are weighted by
+    1 / (1 + (b N / noise)^2) (:func:`_weighted_ncc`).
 
     Returns a dict with ``x_px``, ``y_px``, ``z``, ``cm``, ``page`` and the
     placement of the best template in ``padded`` (``top``, ``left`` integer
@@ -579,7 +615,13 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
                 and (r1 - r0) * (c1 - c0) >= 0.25 * T * T and win.shape == (T + 2 * m, T + 2 * m)
                 and _outside_fraction(t, r0, r1, c0, c1) > 0.05):    # (masked matching is slow: when it matters)
             return _masked_ncc(win, t, r0, r1, c0, c1)
+        if weight is not None:
+            return _weighted_ncc(win, wts(ri - h - m, ri + h + m + 1, ci - h - m, ci + h + m + 1), t)
         return cv2.matchTemplate(win, t, cv2.TM_CCOEFF_NORMED)
+
+    def wts(a0, a1, b0, b1):
+        N, b, noise = weight
+        return 1.0 / (1.0 + (b / noise * N[a0:a1, b0:b1]) ** 2)
 
     def corr_near(k, i0, j0, mf, t=None):
         # the shifts within mf of (i0, j0) only (the fine stage: the position is known from the coarse one)
@@ -589,7 +631,11 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
         b0, b1 = max(j0 - mf, 0), min(j0 + mf, n - 1) + 1
         win = padded[ri - h - m + a0: ri + h - m + a1, ci - h - m + b0: ci + h - m + b1]
         out = np.full((n, n), -1.0, np.float32)
-        out[a0:a1, b0:b1] = cv2.matchTemplate(win, t, cv2.TM_CCOEFF_NORMED)
+        if weight is not None:
+            out[a0:a1, b0:b1] = _weighted_ncc(win, wts(ri - h - m + a0, ri + h - m + a1, ci - h - m + b0,
+                                                       ci + h - m + b1), t)
+        else:
+            out[a0:a1, b0:b1] = cv2.matchTemplate(win, t, cv2.TM_CCOEFF_NORMED)
         return out
 
     maps = np.full((K, n, n), -1.0, np.float32)
@@ -837,14 +883,66 @@ def _still_there(resimg, pad, tmpl, calib: Calibration, r, c, k, c_min: float, s
     if top < 0 or left < 0 or top + T + 2 > resimg.shape[0] or left + T + 2 > resimg.shape[1]:
         return True
     win = resimg[top:top + T + 2, left:left + T + 2]
-    R = np.nan_to_num(cv2.matchTemplate(win, t, cv2.TM_CCOEFF_NORMED), nan=-1.0)
-    if float(R.max()) < c_min:
+    R = cv2.matchTemplate(win, t, cv2.TM_CCOEFF_NORMED)
+    mx = float(R.max())
+    if mx != mx:                        # a constant window (padding) gives NaN
+        R = np.nan_to_num(R, nan=-1.0)
+        mx = float(R.max())
+    if mx < c_min:
         return False
-    i, j = np.unravel_index(int(np.argmax(R)), R.shape)
-    w = win[i:i + T, j:j + T]
-    den = float((t * t).sum())
-    a = float((t * w).sum()) / den if den > 0 else 0.0
+    i, j = divmod(int(np.argmax(R)), 3)
+    tv = t.ravel()
+    den = float(np.dot(tv, tv))
+    a = float(np.vdot(t, np.ascontiguousarray(win[i:i + T, j:j + T]))) / den if den > 0 else 0.0
     return a * math.sqrt(den) / noise >= snr_min
+
+
+def _snr_bound(resimg, pad, tmpl, calib: Calibration, rr, cc, kk, noise: float) -> np.ndarray:
+    """Per candidate, an upper bound of the amplitude SNR :func:`_still_there` would find on ``resimg`` as it is.
+
+    That SNR is the least-squares amplitude of template ``k`` at one of the
+    3 x 3 shifts about the candidate, times sqrt(sum t^2) / noise: at most the
+    largest (sum t w) / (sqrt(sum t^2) noise) over the 3 x 3 shifts, read here
+    from one whole-frame correlation per representative template (instead of
+    one small correlation per candidate: a later round on a 512^2 frame of 20
+    bright, large images meets ~700 candidates, nearly all leftovers).
+    Candidates whose window leaves the padded frame get +inf (never skipped).
+    """
+    import cv2
+
+    out = np.full(len(rr), np.inf)
+    Hp, Wp = resimg.shape
+    for k in np.unique(kk):
+        sel = np.nonzero(kk == k)[0]
+        t = tmpl[k]
+        T = t.shape[0]
+        den = float((t.astype(np.float64) ** 2).sum())
+        if den <= 0:
+            continue
+        R = cv2.matchTemplate(resimg, t, cv2.TM_CCORR)          # R[top, left] = sum t * window
+        oy, ox = int(round(calib.centers[k, 0])), int(round(calib.centers[k, 1]))
+        top = rr[sel] + pad - oy - 1
+        left = cc[sel] + pad - ox - 1
+        ok = (top >= 0) & (left >= 0) & (top + T + 2 <= Hp) & (left + T + 2 <= Wp)
+        if not ok.any():
+            continue
+        best = np.full(ok.sum(), -np.inf)
+        for a in range(3):
+            for b in range(3):
+                best = np.maximum(best, R[top[ok] + a, left[ok] + b])
+        out[sel[ok]] = best / (math.sqrt(den) * noise)
+    return out
+
+
+def _touches(hit, tmpl, slices) -> bool:
+    """Whether the 3 x 3-shift window of ``hit``'s template (its ``page``, ``top``, ``left``) meets any of the
+    (row slice, col slice) windows."""
+    T = tmpl[hit["page"]].shape[0]
+    r0, c0 = hit["top"] - 1, hit["left"] - 1
+    for rs, cs in slices:
+        if rs.start < r0 + T + 2 and r0 < rs.stop and cs.start < c0 + T + 2 and c0 < cs.stop:
+            return True
+    return False
 
 
 def _best_in_window(resimg, pad, tmpl, calib: Calibration, r0, r1, c0, c1, n_templates: int):
@@ -922,13 +1020,17 @@ def _split(res, pad, tmpl, calib, hit, model, cap, n_parts, m, z_points, cm_drop
             res.subtract(*pm[-1])
             parts.append(hj)
         for _ in range(3):
+            same = True
             for j in range(len(parts)):
                 res.add(*pm[j])
                 hj = _match_one(res.img, pad, parts[j]["y_px"], parts[j]["x_px"], tmpl, calib, m, z_points,
                                 cm_drop, coarse)
                 pm[j] = res.model(hj, cap(hj))
                 res.subtract(*pm[j])
+                same &= all(hj[key] == parts[j][key] for key in ("page", "top", "left", "di", "dj"))
                 parts[j] = hj
+            if same:
+                break       # a sweep that changed no part: the next one would see the same residual
         return parts, pm
 
     seed = dict(hit)
@@ -958,6 +1060,40 @@ def _split(res, pad, tmpl, calib, hit, model, cap, n_parts, m, z_points, cm_drop
     return best[1], best[2]
 
 
+class _HitIndex:
+    """The accepted hits' centres, template windows and SNRs as arrays, grown as hits are accepted: the distance
+    to the nearest hit and :func:`_overlap_snr` without a Python loop over the hits (a 512^2 frame of 20 large
+    images meets ~1000 candidates)."""
+
+    def __init__(self, hits, tmpl):
+        self.tmpl = tmpl
+        self.n = 0
+        self.a = np.zeros((max(2 * len(hits), 16), 6))     # y_px, x_px, window centre row, col, side, snr
+        for h in hits:
+            self.add(h)
+
+    def add(self, h):
+        if self.n == len(self.a):
+            self.a = np.concatenate([self.a, np.zeros_like(self.a)])
+        T = self.tmpl[h["page"]].shape[0]
+        self.a[self.n] = (h["y_px"], h["x_px"], h["top"] + T / 2, h["left"] + T / 2, T, h["snr"])
+        self.n += 1
+
+    def nearest(self, y, x) -> float:
+        a = self.a[:self.n]
+        return float(np.hypot(a[:, 0] - y, a[:, 1] - x).min()) if self.n else float("inf")
+
+    def overlap_snr(self, hit, scale: float = 1.0) -> float:
+        """As :func:`_overlap_snr` (hit against all accepted ones)."""
+        if not self.n:
+            return 0.0
+        a = self.a[:self.n]
+        T = self.tmpl[hit["page"]].shape[0]
+        lim = scale * (T + a[:, 4]) / 2
+        ov = (np.abs(a[:, 2] - hit["top"] - T / 2) < lim) & (np.abs(a[:, 3] - hit["left"] - T / 2) < lim)
+        return float(max(a[ov, 5].max(), 0.0)) if ov.any() else 0.0
+
+
 def _overlap_snr(hit, hits, tmpl, scale: float = 1.0) -> float:
     """Largest amplitude SNR of the accepted particles whose template windows overlap ``hit``'s (0 if none).
 
@@ -981,7 +1117,7 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
               min_mass: float = 0.5, max_mass: float | None = 1.8, coarse: int = 4,
               amp_cap: float | None = 1.15, split_at: float | None = 1.6, split_gain: float = 100.0,
               split_chi2: float = 3.0, max_chi2: float | None = None, ghost_mass: float = 0.7,
-              ghost_px: float = 6.0, merged_cm: float | None = 0.99) -> pd.DataFrame:
+              ghost_px: float = 6.0, merged_cm: float | None = 0.99, split_cm: float | None = 0.995) -> pd.DataFrame:
     """Detect defocused particles in a background-subtracted frame and measure x, y, z, Cm.
 
     Built for realistic (crowded) frames, where defocused images overlap and
@@ -1015,7 +1151,8 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
        or whose window is left with a residual chi^2 above ``split_chi2``
        times the frame's typical one, is refitted as 2-3 particles
        (:func:`_split`; kept when the window's residual sum of squares drops
-       by more than ``split_gain`` noise variances).
+       by more than ``split_gain`` noise variances). Matches with Cm of
+       ``split_cm`` or more are not split (None: no such limit).
     5. ``refine`` passes re-match the accepted particles with all the others
        removed (only those next to a particle that changed; they stop when
        nothing moves); a particle that converges within 2 px of another is
@@ -1126,34 +1263,40 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
                                     exclude=xy() if hits else None, with_page=True)
         new = 0
         n_at_start = len(hits)
-        for r, c, k0 in zip(rr, cc, kk):
-            if hits:
-                d = np.hypot(xy()[:, 0] - r, xy()[:, 1] - c).min()
-                if d <= 3.0:
-                    continue
-            if len(hits) > n_at_start and not _still_there(res.img, pad, tmpl, calib, r, c, k0, c_candidate,
-                                                           0.5 * snr_fit, res.noise):
+        idx = _HitIndex(hits, tmpl)     # positions and windows of the hits, for the checks below (no loop over hits)
+        bound = _snr_bound(res.img, pad, tmpl, calib, rr, cc, kk, res.noise) if rnd > 0 and hits else None
+        touched = []                    # windows of the models subtracted in this round (the bound is stale there)
+        for q, (r, c, k0) in enumerate(zip(rr, cc, kk)):
+            if hits and idx.nearest(r, c) <= 3.0:
                 continue
             if rnd > 0 and hits:
                 # later rounds search the residual, where the leftovers of bright particles' imperfect models
                 # give dozens of candidates that the full match would reject (their amplitude is a small
                 # fraction of the image they sit on): the cheap check first, at half the final thresholds
-                # (a full-frame 512^2 frame of five 1e6-photon particles: 92 -> a few full matches)
+                # (a full-frame 512^2 frame of five 1e6-photon particles: 92 -> a few full matches). (Its
+                # threshold is at least the one below, so that check is not repeated.)
                 near = {"page": int(k0), "top": r + pad - int(round(calib.centers[k0, 0])),
                         "left": c + pad - int(round(calib.centers[k0, 1]))}
-                lim = 0.5 * max(snr_fit, snr_rel * _overlap_snr(near, hits, tmpl))
+                lim = 0.5 * max(snr_fit, snr_rel * idx.overlap_snr(near))
+                if bound[q] < 0.9 * lim and not _touches(near, tmpl, touched):
+                    continue        # _still_there would say no: its SNR is at most the bound, unchanged since
                 if not _still_there(res.img, pad, tmpl, calib, r, c, k0, c_candidate, lim, res.noise):
                     continue
+            elif len(hits) > n_at_start and not _still_there(res.img, pad, tmpl, calib, r, c, k0, c_candidate,
+                                                             0.5 * snr_fit, res.noise):
+                continue
             hit = _match_one(res.img, pad, r, c, tmpl, calib, m, z_points, cm_drop, coarse, fine_margin=fm)
             if hit["cm"] < cm_min:
                 continue
-            if hits and np.hypot(xy()[:, 0] - hit["y_px"], xy()[:, 1] - hit["x_px"]).min() <= 2.0:
+            if hits and idx.nearest(hit["y_px"], hit["x_px"]) <= 2.0:
                 continue
             sl, mod = res.model(hit, cap(hit))
-            if hit["snr"] < max(snr_fit, snr_rel * _overlap_snr(hit, hits, tmpl)):
+            if hit["snr"] < max(snr_fit, snr_rel * idx.overlap_snr(hit)):
                 continue
             res.subtract(sl, mod)
             hits.append(hit)
+            idx.add(hit)
+            touched.append(sl)
             models.append((sl, mod))
             new += 1
         if rnd == 0 and amp_cap and len(hits) >= 3:
@@ -1182,6 +1325,12 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
             for i in range(n0):
                 h = hits[i]
                 if h.get("split_tried"):
+                    continue
+                if split_cm is not None and h["cm"] >= split_cm:
+                    # a match this good is one image explained by one template (or two images on top of each other
+                    # at one height, whose merged z is right): a bright isolated near-focus image, whose residual
+                    # is the template's own imperfection, was split for nothing (512^2, 20 particles: 8 attempts of
+                    # ~14 matches each per frame, 72 % of all matches; diffusion3d: none of its 128 accepted splits)
                     continue
                 chi2 = chis[i] / chi_ref
                 if ref[0] > 0:
@@ -1217,6 +1366,11 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
             break
         # which hits changed since their neighbours were last matched: new ones (no "settled" key) and those
         # whose re-match moved them; a pass re-matches only hits next to a changed one
+        nb = None
+        if _NEIGHBOUR_WEIGHT and refine:
+            nb = np.zeros(res.img.shape, np.float32)       # summed |model| of the accepted particles
+            for sl_, mod_ in models:
+                nb[sl_] += np.abs(mod_)
         for _ in range(int(refine)):
             alive, moved, dropped = [], set(), False
             for i, h in enumerate(hits):
@@ -1231,8 +1385,10 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
                     alive.append(i)         # its neighbourhood did not change since its last re-match
                     continue
                 res.add(*models[i])
+                if nb is not None:
+                    nb[models[i][0]] -= np.abs(models[i][1])
                 h2 = _match_one(res.img, pad, h["y_px"], h["x_px"], tmpl, calib, min(m, 2), z_points, cm_drop, coarse,
-                                fine_margin=fm)
+                                fine_margin=fm, weight=None if nb is None else (nb, _NEIGHBOUR_WEIGHT, res.noise))
                 if h2["cm"] >= h["cm"] - 0.02:
                     if (h2["page"] != h["page"] or abs(h2["x_px"] - h["x_px"]) > 0.1
                             or abs(h2["y_px"] - h["y_px"]) > 0.1):
@@ -1244,6 +1400,8 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
                     continue        # converged onto another particle: one image, found twice
                 sl, mod = res.model(h, cap(h))
                 res.subtract(sl, mod)
+                if nb is not None:
+                    nb[sl] += np.abs(mod)
                 hits[i], models[i] = h, (sl, mod)
                 alive.append(i)
             hits = [hits[i] for i in alive]

@@ -82,7 +82,10 @@ def refine_full(img, calib, df, f: int, smooth: float = 1.5, small: int = 64):
     ``small`` px and one recorded step beyond; 3 interpolated templates
     either way for larger ones) are correlated at
     +-1 px of it, and z is the vertex of the parabola through Cm(z)
-    (:func:`ptrack.calibration._quadratic_peak`). A particle whose windows
+    (:func:`ptrack.calibration._quadratic_peak`); with interpolated templates
+    (``n_sub`` per recorded step) and more than 4 steps' worth of them, the
+    recorded pages' templates are correlated first and then the
+    interpolated ones within a step of the best. A particle whose windows
     leave the frame keeps its reduced-resolution values. ``mass``: the
     least-squares amplitude of the best full-resolution template times its
     signal.
@@ -129,20 +132,37 @@ def refine_full(img, calib, df, f: int, smooth: float = 1.5, small: int = 64):
         else:
             js = np.arange(max(0, k - 3), min(K, k + 4))
         maps = np.full((len(js), 3, 3), -1.0, np.float32)
-        inside = True
-        for q, j in enumerate(js):
-            tj = tm[j]
-            Tj = tj.shape[0]
-            tp, lf = int(round(y0 - calib.centers[j][0])) - 1, int(round(x0 - calib.centers[j][1])) - 1
-            if tp < 0 or lf < 0 or tp + Tj + 2 > H or lf + Tj + 2 > W:
-                inside = False
-                break
-            maps[q] = cv2.matchTemplate(sm[tp:tp + Tj + 2, lf:lf + Tj + 2], tj, cv2.TM_CCOEFF_NORMED)
-        if not inside:
+        done = np.zeros(len(js), bool)
+
+        def corr(qs):
+            for q in qs:
+                j = js[q]
+                tj = tm[j]
+                Tj = tj.shape[0]
+                tp, lf = int(round(y0 - calib.centers[j][0])) - 1, int(round(x0 - calib.centers[j][1])) - 1
+                if tp < 0 or lf < 0 or tp + Tj + 2 > H or lf + Tj + 2 > W:
+                    return False
+                maps[q] = cv2.matchTemplate(sm[tp:tp + Tj + 2, lf:lf + Tj + 2], tj, cv2.TM_CCOEFF_NORMED)
+                done[q] = True
+            return True
+
+        if n_sub > 1 and len(js) > 4 * n_sub:
+            # coarse to fine, as the match itself (ptrack.calibration._match_one): the templates of the recorded
+            # pages first, then the interpolated ones within a step of the best (+-30 um stack in 2 um steps,
+            # 512^2: ~180 -> ~40 correlations per small image)
+            first = np.nonzero(js % n_sub == 0)[0]
+            ok = corr(first)
+            if ok:
+                np.copyto(maps, -1.0, where=np.isnan(maps))
+                qb = int(first[np.argmax(_subpixel_peaks(maps[first]))])
+                ok = corr(np.arange(max(0, qb - n_sub - 1), min(len(js), qb + n_sub + 2)))
+        else:
+            ok = corr(np.arange(len(js)))
+        if not ok:
             continue
         np.copyto(maps, -1.0, where=np.isnan(maps))
         peak = np.full(K, -1.0)
-        peak[js] = _subpixel_peaks(maps)
+        peak[js[done]] = _subpixel_peaks(maps[done])
         kb = int(np.argmax(peak))
         zs[i] = _quadratic_peak(calib.z, peak, kb, None, 0.15)
         cms[i] = min(float(peak[kb]), 1.0)
