@@ -273,6 +273,15 @@ def _begin_forces(vel, radius, charge, gamma, fconst, drag_mode, extp, seed, ste
 
 
 @njit(cache=True)
+def _copy_rows(dst, src):
+    """``dst[:, :] = src`` for two arrays of one shape, as a loop: the slice assignment's broadcasting check
+    compiles an error-message formatter (about 3 s of compile time on first use)."""
+    for i in range(src.shape[0]):
+        for c in range(src.shape[1]):
+            dst[i, c] = src[i, c]
+
+
+@njit(cache=True)
 def rebuild_neighbors(pos, image, radius, cutoff, skin, lo, length, periodic, start, nbj, hist, ref_pos):
     """Wrap positions into the box and rebuild the neighbour list from them.
 
@@ -290,7 +299,7 @@ def rebuild_neighbors(pos, image, radius, cutoff, skin, lo, length, periodic, st
     wrap_positions(pos, image, lo, length, periodic)
     ns, nj, nsh = _build(pos, radius, cutoff, skin, lo, length, periodic)
     hist = carry_history(start, nbj, hist, ns, nj)
-    ref_pos[:, :] = pos
+    _copy_rows(ref_pos, pos)
     return ns, nj, nsh, hist
 
 
@@ -326,7 +335,7 @@ def rebuild_sorted(pos, image, vel, omega, force, torque, radius, mass, inertia,
         order[q] = tmpo[perm[q]]
     ns, nj, nsh = _build(pos, radius, cutoff, skin, lo, length, periodic)
     hist = carry_history_permuted(start, nbj, hist, ns, nj, perm)
-    ref_pos[:, :] = pos
+    _copy_rows(ref_pos, pos)
     return ns, nj, nsh, hist
 
 

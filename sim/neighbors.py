@@ -247,14 +247,14 @@ def _build(pos, radius, cutoff, skin, lo, length, periodic):
     dummy_j = np.empty(0, dtype=np.int64)
     dummy_s = np.empty((0, 3))
     _scan(pos, radius, cutoff, skin, lo, length, periodic, ncell, cell_of, cell_start,
-          order, start, dummy_j, dummy_s, False)
+          order, start, dummy_j, dummy_s, np.bool_(False))  # np.bool_: one compiled _scan for both passes
     for i in range(n):
         start[i + 1] += start[i]
     m = start[n]
     nbj = np.empty(m, dtype=np.int64)
     shift = np.zeros((m, 3))
     _scan(pos, radius, cutoff, skin, lo, length, periodic, ncell, cell_of, cell_start,
-          order, start, nbj, shift, True)
+          order, start, nbj, shift, np.bool_(True))
     return start, nbj, shift
 
 

@@ -119,14 +119,9 @@ def pair_law_force_t(nl, codes, params, r, ri, rj, qi, qj):
     same sum in the same order, without array arguments per pair (their reference counting cost more
     than the laws)."""
     f = 0.0
-    if nl > 0:
-        f += nearfield_magnitude(codes[0], params[0], r, ri, rj, qi, qj)
-    if nl > 1:
-        f += nearfield_magnitude(codes[1], params[1], r, ri, rj, qi, qj)
-    if nl > 2:
-        f += nearfield_magnitude(codes[2], params[2], r, ri, rj, qi, qj)
-    if nl > 3:
-        f += nearfield_magnitude(codes[3], params[3], r, ri, rj, qi, qj)
+    # a loop over the (homogeneous) tuples: one inlined copy of the laws, not one per row (compile time)
+    for k in range(nl):
+        f += nearfield_magnitude(codes[k], params[k], r, ri, rj, qi, qj)
     return f
 
 
