@@ -158,8 +158,13 @@ def link(features: pd.DataFrame, search_range: float | None = None, memory: int 
         out = features.assign(particle=np.zeros(0, np.int64))
         out.attrs["link"] = {"search_range_px": search_range}
         return out
-    # in frame order (as trackpy returns it), ties in their given order
-    feats = features.sort_values("frame", kind="stable").reset_index(drop=True)
+    # in frame order (as trackpy returns it), ties in their given order; one copy of the table (the caller's
+    # is not changed), none more: a table from locate is already in frame order
+    fr0 = features["frame"].to_numpy()
+    if len(fr0) > 1 and not (fr0[1:] >= fr0[:-1]).all():
+        feats = features.sort_values("frame", kind="stable").reset_index(drop=True)
+    else:
+        feats = features.reset_index(drop=True)
     three_d = "z" in feats.columns and np.isfinite(feats["z"].to_numpy()).any()
     if three_d:
         if pixel_size is None:
@@ -229,7 +234,9 @@ def link(features: pd.DataFrame, search_range: float | None = None, memory: int 
         pid = _trackpy_link(feats, rng_, memory, pos)
     linked = feats
     linked["particle"] = pid
-    linked = linked.drop(columns=[c for c in ("z_px",) if c in linked.columns and c not in features.columns])
+    extra = [c for c in ("z_px",) if c in linked.columns and c not in features.columns]
+    if extra:
+        linked = linked.drop(columns=extra)
     linked.attrs["link"] = {"search_range_px": float(rng_[-1]), "memory": int(memory)}
     if three_d:
         linked.attrs["link"]["z_search_range_m"] = float(rng_[0] * pixel_size)
