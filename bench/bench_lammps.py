@@ -329,7 +329,9 @@ def restitution_ours(work: Path) -> dict:
 
 # --------------------------------------------------------------------------- cold / warm start
 def study_cold_warm(work: Path) -> dict:
-    """Wall time of ``ptrack study deposition --example 1`` with an empty numba cache, then warm."""
+    """Wall and CPU time (user + system, s) of ``ptrack study deposition --example 1`` with an empty numba
+    cache, then warm (keys ``cold``, ``warm``: wall; ``cold_cpu``, ``warm_cpu``: CPU; the CPU ratio is the
+    one to trust on a loaded machine)."""
     cache = work / "numba_cache_empty"
     shutil.rmtree(cache, ignore_errors=True)
     cache.mkdir(parents=True)
@@ -339,8 +341,10 @@ def study_cold_warm(work: Path) -> dict:
     for label in ("cold", "warm"):
         d = work / f"study_{label}"
         shutil.rmtree(d, ignore_errors=True)
+        cpu = {}
         out[label] = _timed([sys.executable, "-m", "ptrack", "study", "deposition", "--example", "1", "--out", str(d),
-                             "--quiet"], env, ROOT, work / f"study_{label}.log")
+                             "--quiet"], env, ROOT, work / f"study_{label}.log", cpu)
+        out[f"{label}_cpu"] = cpu["last"]
     return out
 
 
@@ -412,7 +416,8 @@ def main(argv=None):
     if not args.no_study:
         cw = study_cold_warm(work)
         print(f"\nptrack study deposition --example 1: cold {cw['cold']:.1f} s (empty NUMBA_CACHE_DIR), "
-              f"warm {cw['warm']:.1f} s, cold/warm {cw['cold'] / cw['warm']:.2f}", flush=True)
+              f"warm {cw['warm']:.1f} s, cold/warm {cw['cold'] / cw['warm']:.2f}; CPU cold {cw['cold_cpu']:.1f} s, "
+              f"warm {cw['warm_cpu']:.1f} s, cold/warm {cw['cold_cpu'] / cw['warm_cpu']:.2f}", flush=True)
     return 0
 
 

@@ -44,7 +44,7 @@ from numba import njit, types
 from numba.extending import overload
 
 from sim.forces.contact import (CONTACT_NONE, D_MAX_DAMP, D_MAX_OVERLAP, D_MAX_OVERLAP_I, D_MAX_W2, D_N_CONTACTS, D_SIZE,
-                                pair_forces, pair_forces_parallel, wall_forces)
+                                _pair_rows, pair_forces_parallel, wall_forces)
 from sim.forces.body import magnetic_force
 from sim.forces.brownian import brownian_sigma
 from sim.forces.drag import drag_force_scalar
@@ -91,7 +91,7 @@ def _external_one(fx, fy, fz, vx, vy, vz, ri, qi, gi, drag_mode, ufx, ufy, ufz, 
                   seed, step, dt, i):
     """Constant force ``f`` (N) + drag + magnetic Lorentz + Brownian on particle ``i`` of velocity
     ``v``, radius, charge and Stokes gamma ``ri``, ``qi``, ``gi``, fluid velocity ``uf``, density and
-    viscosity ``rho_f``, ``mu``, magnetic field ``b``; see :func:`_external`.  Everything comes in as
+    viscosity ``rho_f``, ``mu``, magnetic field ``b``; see :func:`_forces`.  Everything comes in as
     scalars (array arguments of a function called per particle cost reference counting in the hot
     loop: 5-10x this function's time)."""
     if drag_mode == DRAG_STOKES:
@@ -125,35 +125,16 @@ def _external_one(fx, fy, fz, vx, vy, vz, ri, qi, gi, drag_mode, ufx, ufy, ufz, 
 
 
 @njit(cache=True)
-def _external(pos, vel, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt, force):
-    """Constant force + drag + magnetic Lorentz + Brownian, added to ``force``.
-
-    ``extp = [vf_x, vf_y, vf_z, rho_f, mu, kT, B_x, B_y, B_z]``. (The overdamped stepper passes
-    drag_mode = DRAG_NONE and kT = 0: its mobility and displacement noise carry drag and Brownian
-    motion.)
-    """
-    n = pos.shape[0]
-    magnetic = extp[6] != 0.0 or extp[7] != 0.0 or extp[8] != 0.0
-    kT = extp[5]
-    for i in range(n):
-        fx, fy, fz = _external_one(fconst[i, 0], fconst[i, 1], fconst[i, 2], vel[i, 0], vel[i, 1], vel[i, 2],
-                                   radius[i], charge[i], gamma[i], drag_mode, extp[0], extp[1], extp[2], extp[3], extp[4],
-                                   extp[6], extp[7], extp[8], magnetic, kT, seed, step, dt, i)
-        force[i, 0] += fx
-        force[i, 1] += fy
-        force[i, 2] += fz
-
-
-@njit(cache=True)
 def _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt,
             model, cp, cpw, pair_laws, wall_laws, rotation, walls, whist, start, nbj, shift, hist,
             force, torque, diag, fbuf, tbuf, dbuf):
-    force[:, :] = 0.0
-    if rotation:
-        torque[:, :] = 0.0
-    for k in range(D_SIZE):
-        diag[k] = 0.0
-    _external(pos, vel, radius, mass, charge, gamma, fconst, drag_mode, extp, seed, step, dt, force)
+    """One whole force pass into ``force``, ``torque`` and ``diag``: the external forces
+    (:func:`_begin_forces`: constant force + drag + magnetic Lorentz + Brownian, ``extp = [vf_x, vf_y,
+    vf_z, rho_f, mu, kT, B_x, B_y, B_z]``; the overdamped stepper passes drag_mode = DRAG_NONE and kT = 0,
+    its mobility and displacement noise carry drag and Brownian motion), then the pair and wall forces
+    (:func:`_interaction_forces`)."""
+    _begin_forces(vel, radius, charge, gamma, fconst, drag_mode, extp, seed, step, dt, rotation, force, torque,
+                  diag)
     _interaction_forces(pos, vel, omega, radius, mass, charge, model, cp, cpw, pair_laws, wall_laws, rotation,
                         walls, whist, start, nbj, shift, hist, force, torque, dt, diag, fbuf, tbuf, dbuf,
                         model != CONTACT_NONE or pair_laws.shape[0] > 0)
@@ -168,8 +149,9 @@ def _interaction_forces(pos, vel, omega, radius, mass, charge, model, cp, cpw, p
     ``force``, ``torque``."""
     if pairs:
         if fbuf is None:
-            pair_forces(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist, force, torque,
-                        model, cp, pair_laws, rotation, dt, diag)
+            # sim.forces.contact.pair_forces, without its wrapper (each wrapper level costs compile time)
+            _pair_rows(0, pos.shape[0], pos, vel, omega, radius, mass, charge, start, nbj, shift, hist, force,
+                       torque, model, cp, pair_laws, rotation, dt, diag)
         else:
             pair_forces_parallel(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist, force, torque,
                                  model, cp, pair_laws, rotation, dt, diag, fbuf, tbuf, dbuf)
@@ -253,8 +235,8 @@ def _kick_drift(pos, vel, omega, force, torque, mass, inertia, ref_pos, hdt, dt,
 @njit(cache=True)
 def _begin_forces(vel, radius, charge, gamma, fconst, drag_mode, extp, seed, step, dt, rotation, force,
                   torque, diag):
-    """Start a force pass: ``force`` = the external forces (:func:`_external` on zeroed arrays, one
-    pass), ``torque`` = 0, ``diag`` = 0."""
+    """Start a force pass: ``force`` = the external forces (``0.0 +`` the sum of :func:`_external_one`,
+    one pass), ``torque`` = 0, ``diag`` = 0."""
     magnetic = extp[6] != 0.0 or extp[7] != 0.0 or extp[8] != 0.0
     kT = extp[5]
     for k in range(D_SIZE):
@@ -350,7 +332,7 @@ def _rebuild_any(pos, image, vel, omega, force, torque, radius, mass, inertia, c
                           frozen, whist, order, cutoff, skin, lo, length, periodic, start, nbj, hist, ref_pos)
 
 
-@overload(_rebuild_any)
+@overload(_rebuild_any, inline="always")
 def _ol_rebuild_any(pos, image, vel, omega, force, torque, radius, mass, inertia, charge, gamma, fconst, frozen,
                     whist, order, cutoff, skin, lo, length, periodic, start, nbj, hist, ref_pos):
     if isinstance(order, (types.NoneType, types.Omitted)):
@@ -454,7 +436,7 @@ def _run_overdamped(nsteps, dt, step0, phi, n_iter,
     nbuild = 0
     t_done = 0.0
     bd_kT = extp[5]
-    # forces without drag and Brownian force (see _external)
+    # forces without drag and Brownian force (see _forces)
     extp = extp.copy()
     extp[5] = 0.0
     drag_mode = DRAG_NONE
