@@ -201,3 +201,48 @@ def test_symmetric_centre_of_defocused_images(z):
     err, err0 = np.array(err), np.array(err0)
     assert np.all(np.abs(err.mean(0)) < 0.1), err.mean(0)
     assert np.sqrt(np.mean(err ** 2)) <= np.sqrt(np.mean(err0 ** 2)) + 0.02, (err, err0)
+
+
+def test_weighted_ncc_is_the_weighted_correlation_at_every_shift():
+    """ptrack.calibration._weighted_ncc against the weighted Pearson correlation written out per shift; all weights
+    1: OpenCV's TM_CCOEFF_NORMED."""
+    import cv2
+
+    from ptrack.calibration import _weighted_ncc
+
+    rng = np.random.default_rng(4)
+    t = rng.normal(size=(9, 9)).astype(np.float32)
+    win = rng.normal(size=(13, 13)).astype(np.float32)
+    w = np.ones_like(win)
+    np.testing.assert_allclose(_weighted_ncc(win, w, t), cv2.matchTemplate(win, t, cv2.TM_CCOEFF_NORMED), atol=1e-5)
+    w = rng.uniform(0.0, 1.0, size=win.shape).astype(np.float32)
+    got = _weighted_ncc(win, w, t)
+    for i in range(5):
+        for j in range(5):
+            ww, x = w[i:i + 9, j:j + 9].astype(float), win[i:i + 9, j:j + 9].astype(float)
+            tm, xm = (ww * t).sum() / ww.sum(), (ww * x).sum() / ww.sum()
+            want = (ww * (t - tm) * (x - xm)).sum() / np.sqrt((ww * (t - tm) ** 2).sum() * (ww * (x - xm) ** 2).sum())
+            assert abs(got[i, j] - want) < 1e-4
+
+
+def test_snr_bound_bounds_the_residual_check():
+    """The bound that lets later rounds skip candidates (ptrack.calibration._snr_bound) is never below the SNR the
+    full check (_still_there) finds: just above the bound, the check says no; just below, it may say yes."""
+    from ptrack.calibration import Calibration, _snr_bound, _still_there
+
+    rng = np.random.default_rng(7)
+    tm = [np.outer(*[np.exp(-0.5 * (np.arange(T) - T // 2) ** 2 / s ** 2)] * 2).astype(np.float32)
+          for T, s in ((9, 1.5), (15, 3.0))]
+    cal = Calibration(tm, np.array([0.0, 1e-6]), np.array([[4.0, 4.0], [7.0, 7.0]]), None, "test", {})
+    pad = 10
+    img = rng.normal(0, 1, (80, 80)).astype(np.float32)
+    for y, x in ((30, 30), (50, 44)):
+        img[y - 7:y + 8, x - 7:x + 8] += 40 * tm[1]
+    padded = np.pad(img, pad)
+    rr, cc = rng.integers(5, 75, 40), rng.integers(5, 75, 40)
+    kk = rng.integers(0, 2, 40)
+    b = _snr_bound(padded, pad, tm, cal, rr, cc, kk, 1.0)
+    assert np.all(np.isfinite(b))
+    for r, c, k, bi in zip(rr, cc, kk, b):
+        assert not _still_there(padded, pad, tm, cal, r, c, k, -1.0, bi + 1e-4 * abs(bi) + 1e-6, 1.0)
+    assert any(_still_there(padded, pad, tm, cal, r, c, k, -1.0, bi - 1e-3 * abs(bi), 1.0) for r, c, k, bi in zip(rr, cc, kk, b))
