@@ -11,6 +11,8 @@ $(STAMP): pyproject.toml setup.py
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e '.[test]'
+	@# compile the simulator's kernels into numba's on-disk cache now, not in a user's first run (~1 min)
+	$(BIN)/python -m ptrack warmup --quiet
 	@touch $(STAMP)
 
 venv: $(STAMP)

@@ -41,6 +41,7 @@ COMMANDS = {
     "sweep": ("ptrack.commands.sweep_cmd", "run a grid of scenes (--set KEY=V1,V2 ...) as dask tasks, one summary table"),
     "compare": ("ptrack.commands.compare_cmd", "compare trajectories tables (experiment vs simulation): MSD, D, van Hove, drift"),
     "twin": ("ptrack.commands.twin_cmd", "a movie's simulated twin: infer parameters, simulate, render, track, compare"),
+    "warmup": ("ptrack.commands.warmup", "compile the simulator's kernels into numba's cache (make venv runs it)"),
 }
 
 # study name -> (module, one-line help)

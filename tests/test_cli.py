@@ -71,7 +71,7 @@ def test_every_numeric_option_of_every_command_has_a_range():
     missing = []
     for name in _available_commands():
         key, parser = command_parser(name)
-        assert parser.numeric_actions or name in ("simulate",), name
+        assert parser.numeric_actions or name in ("simulate", "warmup"), name
         for a in parser.numeric_actions:
             if range_for(key, _long(a)) is None:
                 missing.append(f"{name} {_long(a)}")
