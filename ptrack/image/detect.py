@@ -440,7 +440,8 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         and the maps are measured on one frame and reused for the next
         :data:`MAP_REFRESH` - 1, and measured again sooner when the frame's
         background level (median of a 1/64 sub-sample) moves by more than 3
-        of its standard errors + 1 %.
+        of its standard errors + 1 %. The ring maps' noise grids are kept
+        there too, with the same lifetime.
     rings : bool
         Also look for ring centres by the rim's vote (:mod:`ptrack.image.rings`)
         when the candidates say the frame holds rings (default; False: blobs only).
@@ -566,7 +567,7 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
             need = sorted({ring_scale(R, scales) for R in RING_RADII})
             bands = {s: (blurs[s] - blurs[_SURROUND * s]) * np.float32(polarity) for s in need}
             rc = ring_maps_candidates(bands, J, rn, RING_RATE_SHARE * float(rate), scales, edge=int(edge),
-                                      tile=int(tile))
+                                      tile=int(tile), noise_cache=cache)
             m = len(rc["rows"])
             if m:
                 rows, cols = np.r_[rows, rc["rows"]], np.r_[cols, rc["cols"]]

@@ -300,7 +300,7 @@ def ring_threshold(pairs, rate: float) -> float:
 
 
 def ring_maps_candidates(bands, J, noise_pix, rate: float, scales, radii=RING_RADII, edge: int = 2,
-                         tile: int = 32):
+                         tile: int = 32, noise_cache: dict | None = None):
     """Ring centres of a frame: maxima of the circle-averaged band-pass maps that pass the all-round test.
 
     Parameters
@@ -322,6 +322,11 @@ def ring_maps_candidates(bands, J, noise_pix, rate: float, scales, radii=RING_RA
         Border (px) beyond a ring's radius where no centre is sought.
     tile : int
         Smallest noise-map tile (px).
+    noise_cache : dict, optional
+        The maps' noise grids follow the camera and the illumination, as the
+        blob scales' do: given a dict (the detector's cache, cleared when its
+        maps are measured again), they are stored in it on the first frame and
+        reused on the next ones of the same shape, radii and scales.
 
     Returns
     -------
@@ -340,25 +345,30 @@ def ring_maps_candidates(bands, J, noise_pix, rate: float, scales, radii=RING_RA
     gh, gw = (H + _STRIDE - 1) // _STRIDE, (W + _STRIDE - 1) // _STRIDE
     best = np.zeros((gh, gw), np.float32)
     arg = np.zeros((gh, gw), np.int8)
-    invs = []
+    ckey = ("ring_invs", H, W, pairs, int(tile))
+    cached = noise_cache.get(ckey) if noise_cache is not None else None
+    invs = [] if cached is None else list(cached)
     poly = {s: _polyphase(bands[s]) for s in {s for _, s in pairs}}
     for k, (R, s) in enumerate(pairs):
         dr, dc, wt = _taps(R)
         g = np.empty((gh, gw), np.float32)
         e = int(math.ceil(R)) + 1 + edge
         _circle_grid(poly[s], H, W, dr, dc, wt, e, g)
-        # the map's noise over tiles holding ~100 of its correlation areas (side >= 12 R)
-        t_side = max(int(tile), int(12 * R), int(math.sqrt(H * W / 64.0)))
-        # (every other grid point: the map is smooth over a few px, ~1000 samples per tile remain)
-        grid = noise_maps(np.ascontiguousarray(g[::2, ::2]), tile=t_side, step=2 * _STRIDE, what="grid",
-                          shape=(H, W))
-        inv = (np.full((gh, gw), grid[0, 0], np.float32) if grid.size == 1
-               else cv2.resize(grid, (gw, gh), interpolation=cv2.INTER_LINEAR))
-        invs.append(inv)
+        if cached is None:
+            # the map's noise over tiles holding ~100 of its correlation areas (side >= 12 R)
+            t_side = max(int(tile), int(12 * R), int(math.sqrt(H * W / 64.0)))
+            # (every other grid point: the map is smooth over a few px, ~1000 samples per tile remain)
+            grid = noise_maps(np.ascontiguousarray(g[::2, ::2]), tile=t_side, step=2 * _STRIDE, what="grid",
+                              shape=(H, W))
+            invs.append(np.full((gh, gw), grid[0, 0], np.float32) if grid.size == 1
+                        else cv2.resize(grid, (gw, gh), interpolation=cv2.INTER_LINEAR))
+        inv = invs[k]
         z = g * inv
         better = np.abs(z) > np.abs(best)
         best[better] = z[better]
         arg[better] = k
+    if noise_cache is not None and cached is None:
+        noise_cache[ckey] = tuple(invs)
     gi, gj = _grid_maxima(best, float(0.8 * u))
     gi, gj = np.asarray(gi, np.int64), np.asarray(gj, np.int64)
     ka = arg[gi, gj].astype(np.int64)
