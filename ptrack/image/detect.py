@@ -65,6 +65,9 @@ FALSE_ALARM_RATE = 1e-6
 RING_RATE_SHARE = 0.5
 #: Scale (px) reported for a ring of radius R found by the ring maps: R x this
 RING_SCALE_PER_RADIUS = 0.4
+# largest full-size inverse-noise maps (bytes, all scales) kept in the cache; larger frames interpolate them
+# in blocks of rows for each map
+_FULL_IVS_BYTES = 64 << 20
 # surround of the band-pass, in units of the scale: 2 = two rungs of the sqrt(2) ladder, so the
 # ladder's blurs serve as each other's surrounds (n + 2 blurs for n scales)
 _SURROUND = 2.0
@@ -239,45 +242,68 @@ def threshold_for(lambdas, rate: float) -> float:
 
 
 @nb.njit(cache=True)
-def _best_over_scales(b1s, b2s, invs, sign, best, arg):
-    # z_i = sign (b1_i - b2_i) / noise_i for every scale i in one pass over the frame, keeping the best
-    # and its scale index (no full-frame band-passed or SNR image is stored). invs[i] is the tile grid of
-    # 1 / noise of scale i, interpolated bilinearly between tile centres (as cv2.resize INTER_LINEAR)
-    h, w = best.shape
-    ns = len(b1s)
+def _inverse_noise_rows(invs, h, w, r0, r1):
+    """1 / noise of every scale at full resolution, rows ``r0:r1`` of an ``h x w`` frame.
+
+    Parameters
+    ----------
+    invs : tuple of 2D float32 arrays
+        Tile grid of 1 / noise (1 / counts) of each scale.
+    h, w : int
+        Frame shape (px).
+    r0, r1 : int
+        Rows (px) to fill.
+
+    Returns
+    -------
+    3D float64 array, shape (len(invs), r1 - r0, w)
+        The grids interpolated bilinearly between tile centres (as cv2.resize INTER_LINEAR), 1 / counts.
+    """
+    ns = len(invs)
+    out = np.empty((ns, r1 - r0, w))
     gwmax = 1
     for i in range(ns):
         gwmax = max(gwmax, invs[i].shape[1])
-    x0 = np.empty((ns, w), np.int64)
-    x1 = np.empty((ns, w), np.int64)
-    wx = np.empty((ns, w))
+    x0 = np.empty(w, np.int64)
+    x1 = np.empty(w, np.int64)
+    wx = np.empty(w)
+    rowv = np.empty(gwmax)
     for i in range(ns):
-        gw = invs[i].shape[1]
+        gh, gw = invs[i].shape
+        g = invs[i]
         fx = gw / w
         for c in range(w):
             xx = min(max((c + 0.5) * fx - 0.5, 0.0), gw - 1.0)
-            x0[i, c] = min(int(xx), gw - 1)
-            x1[i, c] = min(x0[i, c] + 1, gw - 1)
-            wx[i, c] = xx - x0[i, c]
-    rowv = np.empty(gwmax)
-    iv = np.empty(w)
-    bz = np.empty(w)
-    bk = np.empty(w, np.int8)
-    for r in range(h):
-        bz[:] = -np.inf
-        bk[:] = 0
-        # scale by scale along the row (contiguous inner loops); ties keep the finer scale
-        for i in range(ns):
-            gh, gw = invs[i].shape
+            x0[c] = min(int(xx), gw - 1)
+            x1[c] = min(x0[c] + 1, gw - 1)
+            wx[c] = xx - x0[c]
+        for r in range(r0, r1):
             yy = min(max((r + 0.5) * gh / h - 0.5, 0.0), gh - 1.0)
             y0 = min(int(yy), gh - 1)
             y1 = min(y0 + 1, gh - 1)
             wy = yy - y0
-            g = invs[i]
             for j in range(gw):
                 rowv[j] = (1 - wy) * g[y0, j] + wy * g[y1, j]
+            o = out[i, r - r0]
             for c in range(w):
-                iv[c] = (1 - wx[i, c]) * rowv[x0[i, c]] + wx[i, c] * rowv[x1[i, c]]
+                o[c] = (1 - wx[c]) * rowv[x0[c]] + wx[c] * rowv[x1[c]]
+    return out
+
+
+@nb.njit(cache=True)
+def _best_over_scales(b1s, b2s, ivs, r0, sign, best, arg):
+    # z_i = sign (b1_i - b2_i) / noise_i for every scale i in one pass over rows r0:r0 + ivs.shape[1] of the
+    # frame, keeping the best and its scale index (no full-frame band-passed or SNR image is stored);
+    # ivs[i] is 1 / noise of scale i at full resolution over those rows (_inverse_noise_rows)
+    ns, nr, w = ivs.shape
+    bz = np.empty(w)
+    bk = np.empty(w, np.int8)
+    for r in range(r0, r0 + nr):
+        bz[:] = -np.inf
+        bk[:] = 0
+        # scale by scale along the row (contiguous inner loops); ties keep the finer scale
+        for i in range(ns):
+            iv = ivs[i, r - r0]
             b1 = b1s[i]
             b2 = b2s[i]
             for c in range(w):
@@ -512,11 +538,30 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
     b2s = tuple(np.ascontiguousarray(blurs[_SURROUND * s], np.float32) for s in scales)
     invs = tuple(invs)
 
+    # the full-size inverse-noise maps change only with the tile grids: interpolated once per map
+    # measurement and kept in the cache (float64, as the row-by-row interpolation gave them); on frames
+    # too large for that (> _FULL_IVS_BYTES) they are interpolated in blocks of rows for each map
+    ivs = c.get("ivs_full") if not fresh else None
+    if ivs is None and len(scales) * H * W * 8 <= _FULL_IVS_BYTES:
+        ivs = _inverse_noise_rows(invs, H, W, 0, H)
+        if cache is not None:
+            cache["ivs_full"] = ivs
+    maps = {}
+
     def best_map(sign):
-        best = np.empty((H, W), np.float32)
-        arg = np.empty((H, W), np.int8)
-        _best_over_scales(b1s, b2s, invs, float(sign), best, arg)
-        return best, arg
+        # one map per sign and frame (the polarity vote's map of the winning side is the detection map)
+        if sign not in maps:
+            best = np.empty((H, W), np.float32)
+            arg = np.empty((H, W), np.int8)
+            if ivs is not None:
+                _best_over_scales(b1s, b2s, ivs, 0, float(sign), best, arg)
+            else:
+                block = max(1, _FULL_IVS_BYTES // (len(scales) * W * 8))
+                for r0 in range(0, H, block):
+                    _best_over_scales(b1s, b2s, _inverse_noise_rows(invs, H, W, r0, min(H, r0 + block)), r0,
+                                      float(sign), best, arg)
+            maps[sign] = best, arg
+        return maps[sign]
 
     if polarity is None:
         # the side whose significant maxima carry more summed excess SNR, sum(z - u), wins
