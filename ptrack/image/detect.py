@@ -291,29 +291,49 @@ def _inverse_noise_rows(invs, h, w, r0, r1):
 
 
 @nb.njit(cache=True)
-def _best_over_scales(b1s, b2s, ivs, r0, sign, best, arg):
+def _best_over_scales(b1s, b2s, ivs, r0, sign, best, arg, best_neg, arg_neg, both):
     # z_i = sign (b1_i - b2_i) / noise_i for every scale i in one pass over rows r0:r0 + ivs.shape[1] of the
     # frame, keeping the best and its scale index (no full-frame band-passed or SNR image is stored);
-    # ivs[i] is 1 / noise of scale i at full resolution over those rows (_inverse_noise_rows)
+    # ivs[i] is 1 / noise of scale i at full resolution over those rows (_inverse_noise_rows). With `both`,
+    # the same pass also fills best_neg, arg_neg: the map of the other sign, max_i(-z_i) = -min_i z_i (exact:
+    # negation does not round), for the polarity vote
     ns, nr, w = ivs.shape
     bz = np.empty(w)
     bk = np.empty(w, np.int8)
+    mz = np.empty(w)
+    mk = np.empty(w, np.int8)
     for r in range(r0, r0 + nr):
         bz[:] = -np.inf
         bk[:] = 0
+        mz[:] = np.inf
+        mk[:] = 0
         # scale by scale along the row (contiguous inner loops); ties keep the finer scale
         for i in range(ns):
             iv = ivs[i, r - r0]
             b1 = b1s[i]
             b2 = b2s[i]
-            for c in range(w):
-                z = sign * (b1[r, c] - b2[r, c]) * iv[c]
-                if z > bz[c]:
-                    bz[c] = z
-                    bk[c] = i
+            if both:
+                for c in range(w):
+                    z = sign * (b1[r, c] - b2[r, c]) * iv[c]
+                    if z > bz[c]:
+                        bz[c] = z
+                        bk[c] = i
+                    if z < mz[c]:
+                        mz[c] = z
+                        mk[c] = i
+            else:
+                for c in range(w):
+                    z = sign * (b1[r, c] - b2[r, c]) * iv[c]
+                    if z > bz[c]:
+                        bz[c] = z
+                        bk[c] = i
         for c in range(w):
             best[r, c] = bz[c]
             arg[r, c] = bk[c]
+        if both:
+            for c in range(w):
+                best_neg[r, c] = -mz[c]
+                arg_neg[r, c] = mk[c]
 
 
 @nb.njit(cache=True)
@@ -546,34 +566,45 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         ivs = _inverse_noise_rows(invs, H, W, 0, H)
         if cache is not None:
             cache["ivs_full"] = ivs
-    maps = {}
+    def best_maps(sign, both):
+        # the SNR map maximised over scale (and its scale index) of one sign, and with `both` of the other
+        # sign too, from the same pass (the polarity vote)
+        n = (H, W) if both else (1, 1)       # the other sign's map: unused without `both`
+        out = [np.empty((H, W), np.float32), np.empty((H, W), np.int8), np.empty(n, np.float32), np.empty(n, np.int8)]
+        if ivs is not None:
+            _best_over_scales(b1s, b2s, ivs, 0, float(sign), *out, both)
+        else:
+            block = max(1, _FULL_IVS_BYTES // (len(scales) * W * 8))
+            for r0 in range(0, H, block):
+                _best_over_scales(b1s, b2s, _inverse_noise_rows(invs, H, W, r0, min(H, r0 + block)), r0,
+                                  float(sign), *out, both)
+        return {sign: (out[0], out[1]), -sign: (out[2], out[3])} if both else {sign: (out[0], out[1])}
 
-    def best_map(sign):
-        # one map per sign and frame (the polarity vote's map of the winning side is the detection map)
-        if sign not in maps:
-            best = np.empty((H, W), np.float32)
-            arg = np.empty((H, W), np.int8)
-            if ivs is not None:
-                _best_over_scales(b1s, b2s, ivs, 0, float(sign), best, arg)
-            else:
-                block = max(1, _FULL_IVS_BYTES // (len(scales) * W * 8))
-                for r0 in range(0, H, block):
-                    _best_over_scales(b1s, b2s, _inverse_noise_rows(invs, H, W, r0, min(H, r0 + block)), r0,
-                                      float(sign), best, arg)
-            maps[sign] = best, arg
-        return maps[sign]
-
+    maxima = {}
     if polarity is None:
-        # the side whose significant maxima carry more summed excess SNR, sum(z - u), wins
+        # the side whose significant maxima carry more summed excess SNR, sum(z - u), wins; both maps from
+        # one pass, the winner's is the detection map
+        maps = best_maps(1, True)
         score = []
         for sign in (1, -1):
-            bm, _ = best_map(sign)
+            bm, _ = maps[sign]
             r, c = _maxima_snr(bm, float(u), 1)
-            score.append(float(np.sum(bm[np.asarray(r, np.int64), np.asarray(c, np.int64)] - u)) if len(r) else 0.0)
+            maxima[sign] = np.asarray(r, np.int64), np.asarray(c, np.int64)
+            score.append(float(np.sum(bm[maxima[sign]] - u)) if len(r) else 0.0)
         polarity = 1 if score[0] >= score[1] else -1
-    polarity = 1 if polarity >= 0 else -1
-    best, k = best_map(polarity)
-    rows, cols = _maxima_snr(best, float(u), int(edge))
+    else:
+        polarity = 1 if polarity >= 0 else -1
+        maps = best_maps(polarity, False)
+    best, k = maps[polarity]
+    if polarity in maxima and int(edge) >= 1:
+        # a pixel's maximum test reads only its 8 neighbours: the maxima away from a wider edge are those of
+        # the vote (edge 1) inside it, in the same (raster) order
+        rows, cols = maxima[polarity]
+        e = int(edge)
+        inside = (rows >= e) & (rows < H - e) & (cols >= e) & (cols < W - e)
+        rows, cols = rows[inside], cols[inside]
+    else:
+        rows, cols = _maxima_snr(best, float(u), int(edge))
     rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
     kk = k[rows, cols]
     z = best[rows, cols].astype(np.float64)
