@@ -182,6 +182,23 @@ def test_trim_deposited_drops_rows_from_touch_down_on():
         V.trim_deposited(df.assign(z=np.nan), R)
 
 
+def test_trim_deposited_cuts_a_clean_descent_exactly_at_contact():
+    # noise-free: free descent to the wall at frame k, then at rest. The running median describes its centre row,
+    # so the cut is row k itself (the first row of the first low window would drop window // 2 free rows)
+    R, k, n_f = 0.4e-6, 23, 40
+    for window in (3, 5, 7):
+        z = np.maximum(6e-6 - (6e-6 - R) * np.arange(n_f) / k, R)
+        df = make_table(np.arange(n_f), np.arange(n_f) * DT, np.zeros(n_f, int), np.zeros(n_f), np.zeros(n_f), z,
+                        meta={"frame_interval": DT})
+        out = V.trim_deposited(df, R, tolerance=1e-9, window=window)
+        assert out["frame"].max() == k - 1, window
+        # a track that starts on the wall has no free rows; a level crossing mid-descent cuts at its first low row
+        start = V.trim_deposited(df.assign(z=np.full(n_f, R)), R, tolerance=1e-9, window=window)
+        assert len(start) == 0
+        mid = V.trim_deposited(df, R, tolerance=3e-6, window=window)
+        assert mid["frame"].max() + 1 == int(np.argmax(z <= R + 3e-6))
+
+
 def test_bad_input_is_a_user_error():
     df2 = make_table(np.arange(10), np.arange(10) * DT, np.zeros(10, int), np.arange(10) * 1e-7, np.zeros(10))
     with pytest.raises(UserError, match="2D"):

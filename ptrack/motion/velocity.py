@@ -652,17 +652,23 @@ def velocity_profile(df: pd.DataFrame, bins=10, z_range=None, axes=None, motion_
 
 @njit(cache=True)
 def _contact_index(z, off, level, window):
-    """Per track: first row from which the running median of z over ``window`` rows is <= level (or the end)."""
+    """Per track: the first row whose centred running median of z (``window`` rows, clipped at the track's ends)
+    is <= level (or the end of the track).
+
+    The median of rows j - window//2 .. j + window//2 describes row j, so a track that moves freely until row k
+    and then sits at the contact height is cut exactly at k. (Cutting at the first row of the first low window,
+    as before, dropped window//2 free rows before every contact, and with them the descent's last part.)"""
     n_p = off.shape[0] - 1
     out = np.empty(n_p, dtype=np.int64)
     buf = np.empty(window)
+    h = window // 2
     for p in range(n_p):
         a = off[p]
         b = off[p + 1]
         out[p] = b
-        for i in range(a, b - window + 1):
+        for i in range(a, b):
             m = 0
-            for j in range(i, i + window):
+            for j in range(max(a, i - h), min(b, i + h + 1)):
                 if z[j] == z[j]:
                     buf[m] = z[j]
                     m += 1
@@ -678,9 +684,9 @@ def _contact_index(z, off, level, window):
 def trim_deposited(df: pd.DataFrame, z_contact: float, tolerance: float = 0.5e-6, window: int = 5) -> pd.DataFrame:
     """Drop each track's rows from its contact with the substrate on (EPD: drift before deposition only).
 
-    A track is taken to touch down at the first row from which the median of
-    ``window`` consecutive measured heights is at or below
-    ``z_contact + tolerance``; that row and all later rows of the track are
+    A track is taken to touch down at the first row whose running median of
+    measured heights (``window`` rows centred on it, clipped at the track's
+    ends) is at or below ``z_contact + tolerance``; that row and all later rows of the track are
     dropped (a deposited particle stays put, and its rows would pull the
     drift towards zero). A running median rather than single heights keeps
     one noisy z from cutting a track early; tracks that never come down keep
