@@ -11,11 +11,9 @@ from .stack import average_beads, bead_tracks, centred, cut_templates, find_bead
 __all__ = ["build_templates", "fit_crop", "smooth_pages"]
 
 # pages in the Savitzky-Golay (quadratic) smoothing of every pixel along z before the templates are cut
-# (smooth_pages); 0 or 1: the pages as recorded. Brightfield (signed) stacks: 9 (epd_brightfield, make run: z RMSE
-# 204 -> 181 nm, drift -5.4 -> -4.6 %, 1.2 -> 1.1 SE; isolated particles' z error vs z slope -0.0077 -> -0.0047,
-# its SD -10 %; the rest of the +0.06 um at 1-5 um is the templates' crop: TEMPLATE_SCALE_SIGNED 1.5 takes it to
-# +0.02 um but, with more noise pixels, 10-15 um to -0.1 um and the drift to 1.3 SE). Fluorescence: none (diffusion3d, 0.1 um steps through a fast-changing astigmatic focus, with 9:
-# z RMSE 81 -> 96 nm, the matches the templates explain 68 -> 65 nm, i.e. overlapping images worse)
+# (smooth_pages); 0 or 1: the pages as recorded. Brightfield (signed) stacks: 9 pages, which removes most of the
+# z-dependent bias that template noise gives isolated particles. Fluorescence: none (on a fast-changing astigmatic
+# focus in 0.1 um steps, smoothing blurred the templates and overlapping images got worse). Figures: README, GDPT.
 Z_SMOOTH = 0
 Z_SMOOTH_SIGNED = 9
 
