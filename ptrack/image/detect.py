@@ -47,6 +47,7 @@ import numba as nb
 import numpy as np
 
 from ..errors import UserError
+from .peaks import local_maxima
 from .rings import RING_RADII, ring_evidence, ring_maps_candidates, ring_scale
 
 __all__ = ["DEFAULT_SCALES", "FALSE_ALARM_RATE", "MAP_REFRESH", "bandpass", "noise_maps", "false_alarm_threshold",
@@ -340,31 +341,6 @@ def _best_over_scales(b1s, b2s, ivs, r0, sign, best, arg, best_neg, arg_neg, bot
 
 
 @nb.njit(cache=True)
-def _maxima_snr(snr, thr, edge):
-    # 8-neighbour local maxima of snr above thr (ties: the first in raster order), away from the edge
-    h, w = snr.shape
-    rows = []
-    cols = []
-    for r in range(edge, h - edge):
-        for c in range(edge, w - edge):
-            v = snr[r, c]
-            if v <= thr:
-                continue
-            ok = True
-            for dr in range(-1, 2):
-                for dc in range(-1, 2):
-                    if dr == 0 and dc == 0:
-                        continue
-                    u = snr[r + dr, c + dc]
-                    if u > v or (u == v and (dr < 0 or (dr == 0 and dc < 0))):
-                        ok = False
-            if ok:
-                rows.append(r)
-                cols.append(c)
-    return rows, cols
-
-
-@nb.njit(cache=True)
 def _ring_test(frame, bgmap, noise, sign, rows, cols, scale, out):
     # an image with a hole: the annulus 0.7 s .. 2.2 s is brighter (polarity applied) than the core
     # (<= 0.5 s) in every one of 8 sectors, beyond 3 noise standard errors, and no sector is below 40 %
@@ -610,7 +586,7 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         score = []
         for sign in (1, -1):
             bm, _ = maps[sign]
-            r, c = _maxima_snr(bm, float(u), 1)
+            r, c = local_maxima(bm, float(u), 1, False)
             maxima[sign] = np.asarray(r, np.int64), np.asarray(c, np.int64)
             score.append(float(np.sum(bm[maxima[sign]] - u)) if len(r) else 0.0)
         polarity = 1 if score[0] >= score[1] else -1
@@ -626,7 +602,7 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         inside = (rows >= e) & (rows < H - e) & (cols >= e) & (cols < W - e)
         rows, cols = rows[inside], cols[inside]
     else:
-        rows, cols = _maxima_snr(best, float(u), int(edge))
+        rows, cols = local_maxima(best, float(u), int(edge), False)
     rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
     kk = k[rows, cols]
     z = best[rows, cols].astype(np.float64)

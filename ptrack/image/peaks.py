@@ -16,7 +16,35 @@ import numpy as np
 
 from .preprocess import median3, noise_sigma
 
-__all__ = ["find_peaks", "detect_raw"]
+__all__ = ["find_peaks", "detect_raw", "local_maxima"]
+
+
+@nb.njit(cache=True)
+def local_maxima(z, thr, edge, signed):
+    """Rows and columns (lists of int) of the 8-neighbour local maxima of ``z`` above ``thr``, at least ``edge``
+    px from the border; ties go to the first in raster order. ``signed``: maxima of ``|z|``, each pixel compared
+    with its neighbours times its own sign (bright and dark extrema in one pass)."""
+    h, w = z.shape
+    rows = []
+    cols = []
+    for r in range(edge, h - edge):
+        for c in range(edge, w - edge):
+            v = abs(z[r, c]) if signed else z[r, c]
+            if v <= thr:
+                continue
+            sg = (1.0 if z[r, c] > 0 else -1.0) if signed else 1.0
+            ok = True
+            for dr in range(-1, 2):
+                for dc in range(-1, 2):
+                    if dr == 0 and dc == 0:
+                        continue
+                    u = sg * z[r + dr, c + dc]
+                    if u > v or (u == v and (dr < 0 or (dr == 0 and dc < 0))):
+                        ok = False
+            if ok:
+                rows.append(r)
+                cols.append(c)
+    return rows, cols
 
 
 def _default_separation(sigma: float) -> float:

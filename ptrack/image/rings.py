@@ -42,6 +42,8 @@ import math
 import numba as nb
 import numpy as np
 
+from .peaks import local_maxima
+
 __all__ = ["RING_RADII", "ring_scale", "ring_threshold", "ring_maps_candidates", "ring_evidence",
            "ring_support"]
 
@@ -136,32 +138,6 @@ def _refine(B, dr, dc, wt, edge, stride, gi, gj, sgn, inv, rows, cols, snr, sig,
                     cols[idx[m]] = c
                     sig[idx[m]] = v
         snr[idx[m]] = bz
-
-
-@nb.njit(cache=True)
-def _grid_maxima(z, thr):
-    # 8-neighbour maxima of |z| above thr on the coarse grid (sign kept), away from the grid's edge
-    gh, gw = z.shape
-    out_i = []
-    out_j = []
-    for i in range(1, gh - 1):
-        for j in range(1, gw - 1):
-            v = abs(z[i, j])
-            if v <= thr:
-                continue
-            sg = 1.0 if z[i, j] > 0 else -1.0
-            ok = True
-            for di in range(-1, 2):
-                for dj in range(-1, 2):
-                    if di == 0 and dj == 0:
-                        continue
-                    u = sg * z[i + di, j + dj]
-                    if u > v or (u == v and (di < 0 or (di == 0 and dj < 0))):
-                        ok = False
-            if ok:
-                out_i.append(i)
-                out_j.append(j)
-    return out_i, out_j
 
 
 @nb.njit(cache=True)
@@ -369,7 +345,7 @@ def ring_maps_candidates(bands, J, noise_pix, rate: float, scales, radii=RING_RA
         arg[better] = k
     if noise_cache is not None and cached is None:
         noise_cache[ckey] = tuple(invs)
-    gi, gj = _grid_maxima(best, float(0.8 * u))
+    gi, gj = local_maxima(best, float(0.8 * u), 1, True)  # bright and dark rings in one pass
     gi, gj = np.asarray(gi, np.int64), np.asarray(gj, np.int64)
     ka = arg[gi, gj].astype(np.int64)
     rows = np.zeros(len(gi), np.int64)
