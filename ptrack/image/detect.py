@@ -295,49 +295,96 @@ def _inverse_noise_rows(invs, h, w, r0, r1):
 
 
 @nb.njit(cache=True)
-def _best_over_scales(b1s, b2s, ivs, r0, sign, best, arg, best_neg, arg_neg, both):
+def _best_over_scales(b1s, b2s, ivs, r0, sign, best, best_neg, both):
     # z_i = sign (b1_i - b2_i) / noise_i for every scale i in one pass over rows r0:r0 + ivs.shape[1] of the
-    # frame, keeping the best and its scale index (no full-frame band-passed or SNR image is stored);
-    # ivs[i] is 1 / noise of scale i at full resolution over those rows (_inverse_noise_rows). With `both`,
-    # the same pass also fills best_neg, arg_neg: the map of the other sign, max_i(-z_i) = -min_i z_i (exact:
-    # negation does not round), for the polarity vote
+    # frame, keeping the best (no full-frame band-passed or SNR image is stored); ivs[i] is 1 / noise of scale
+    # i at full resolution over those rows (_inverse_noise_rows). With `both`, the same pass also fills
+    # best_neg: the map of the other sign, max_i(-z_i) = -min_i z_i (exact: negation does not round), for the
+    # polarity vote. The scale index of the best is not kept here (tracking it made the pass ~1.8x slower):
+    # _scale_at recomputes it at the few pixels that need it
     ns, nr, w = ivs.shape
     bz = np.empty(w)
-    bk = np.empty(w, np.int8)
     mz = np.empty(w)
-    mk = np.empty(w, np.int8)
     for r in range(r0, r0 + nr):
-        bz[:] = -np.inf
-        bk[:] = 0
-        mz[:] = np.inf
-        mk[:] = 0
-        # scale by scale along the row (contiguous inner loops); ties keep the finer scale
+        # scale by scale along the row (contiguous, branch-free inner loops)
         for i in range(ns):
             iv = ivs[i, r - r0]
-            b1 = b1s[i]
-            b2 = b2s[i]
-            if both:
+            b1 = b1s[i][r]
+            b2 = b2s[i][r]
+            if i == 0:
                 for c in range(w):
-                    z = sign * (b1[r, c] - b2[r, c]) * iv[c]
-                    if z > bz[c]:
-                        bz[c] = z
-                        bk[c] = i
-                    if z < mz[c]:
-                        mz[c] = z
-                        mk[c] = i
+                    z = sign * (b1[c] - b2[c]) * iv[c]
+                    bz[c] = z
+                    mz[c] = z
+            elif both:
+                for c in range(w):
+                    z = sign * (b1[c] - b2[c]) * iv[c]
+                    bz[c] = max(bz[c], z)
+                    mz[c] = min(mz[c], z)
             else:
                 for c in range(w):
-                    z = sign * (b1[r, c] - b2[r, c]) * iv[c]
-                    if z > bz[c]:
-                        bz[c] = z
-                        bk[c] = i
+                    z = sign * (b1[c] - b2[c]) * iv[c]
+                    bz[c] = max(bz[c], z)
+        bo = best[r]
         for c in range(w):
-            best[r, c] = bz[c]
-            arg[r, c] = bk[c]
+            bo[c] = bz[c]
         if both:
+            bn = best_neg[r]
             for c in range(w):
-                best_neg[r, c] = -mz[c]
-                arg_neg[r, c] = mk[c]
+                bn[c] = -mz[c]
+
+
+@nb.njit(cache=True)
+def _scale_at(b1s, b2s, invs, h, w, sign, rows, cols):
+    """Index of the scale whose SNR is the best (ties: the finer) at each pixel, the value
+    :func:`_best_over_scales` keeps there.
+
+    Parameters
+    ----------
+    b1s, b2s : tuples of 2D float32 arrays
+        ``G(s) * frame`` and ``G(2 s) * frame`` per scale (counts).
+    invs : tuple of 2D float32 arrays
+        Tile grids of 1 / noise per scale (1 / counts), interpolated here at each pixel with the arithmetic of
+        :func:`_inverse_noise_rows` (bit-identical).
+    h, w : int
+        Frame shape (px).
+    sign : float
+        Polarity.
+    rows, cols : 1D int64 arrays
+        Pixels.
+
+    Returns
+    -------
+    1D int64 array
+    """
+    n = rows.shape[0]
+    out = np.zeros(n, np.int64)
+    best = np.full(n, -np.inf)
+    for i in range(len(invs)):
+        g = invs[i]
+        gh, gw = g.shape
+        fx = gw / w
+        b1 = b1s[i]
+        b2 = b2s[i]
+        for k in range(n):
+            r = rows[k]
+            c = cols[k]
+            yy = min(max((r + 0.5) * gh / h - 0.5, 0.0), gh - 1.0)
+            y0 = min(int(yy), gh - 1)
+            y1 = min(y0 + 1, gh - 1)
+            wy = yy - y0
+            xx = min(max((c + 0.5) * fx - 0.5, 0.0), gw - 1.0)
+            x0 = min(int(xx), gw - 1)
+            x1 = min(x0 + 1, gw - 1)
+            wx = xx - x0
+            v0 = (1 - wy) * g[y0, x0] + wy * g[y1, x0]
+            v1 = (1 - wy) * g[y0, x1] + wy * g[y1, x1]
+            iv = (1 - wx) * v0 + wx * v1
+            z = sign * (b1[r, c] - b2[r, c]) * iv
+            if z > best[k]:
+                best[k] = z
+                out[k] = i
+    return out
 
 
 @nb.njit(cache=True)
@@ -568,7 +615,7 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         # the SNR map maximised over scale (and its scale index) of one sign, and with `both` of the other
         # sign too, from the same pass (the polarity vote)
         n = (H, W) if both else (1, 1)       # the other sign's map: unused without `both`
-        out = [np.empty((H, W), np.float32), np.empty((H, W), np.int8), np.empty(n, np.float32), np.empty(n, np.int8)]
+        out = [np.empty((H, W), np.float32), np.empty(n, np.float32)]
         if ivs is not None:
             _best_over_scales(b1s, b2s, ivs, 0, float(sign), *out, both)
         else:
@@ -576,7 +623,7 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
             for r0 in range(0, H, block):
                 _best_over_scales(b1s, b2s, _inverse_noise_rows(invs, H, W, r0, min(H, r0 + block)), r0,
                                   float(sign), *out, both)
-        return {sign: (out[0], out[1]), -sign: (out[2], out[3])} if both else {sign: (out[0], out[1])}
+        return {sign: out[0], -sign: out[1]} if both else {sign: out[0]}
 
     maxima = {}
     if polarity is None:
@@ -585,7 +632,7 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         maps = best_maps(1, True)
         score = []
         for sign in (1, -1):
-            bm, _ = maps[sign]
+            bm = maps[sign]
             r, c = local_maxima(bm, float(u), 1, False)
             maxima[sign] = np.asarray(r, np.int64), np.asarray(c, np.int64)
             score.append(float(np.sum(bm[maxima[sign]] - u)) if len(r) else 0.0)
@@ -593,7 +640,7 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
     else:
         polarity = 1 if polarity >= 0 else -1
         maps = best_maps(polarity, False)
-    best, k = maps[polarity]
+    best = maps[polarity]
     if polarity in maxima and int(edge) >= 1:
         # a pixel's maximum test reads only its 8 neighbours: the maxima away from a wider edge are those of
         # the vote (edge 1) inside it, in the same (raster) order
@@ -604,7 +651,7 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
     else:
         rows, cols = local_maxima(best, float(u), int(edge), False)
     rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
-    kk = k[rows, cols]
+    kk = _scale_at(b1s, b2s, invs, H, W, float(polarity), rows, cols)
     z = best[rows, cols].astype(np.float64)
     if polarity > 0 and len(rows):
         # Poisson (and sCMOS) noise is skewed to the bright side: at a low background the Gaussian
