@@ -556,7 +556,8 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
     if not scales or min(scales) <= 0:
         raise UserError(f"scales {scales} must be positive", "give spot widths in px")
     u = false_alarm_threshold(scales, float(rate)) if snr is None else float(snr)
-    work = np.ascontiguousarray(frame, np.float32)
+    # the frame as float32 once (the maps, the ring tests and the ring maps read it too)
+    f32 = work = np.ascontiguousarray(frame, np.float32)
     if median:
         work = cv2.medianBlur(work, 3)
     H, W = work.shape
@@ -588,7 +589,7 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
                 noise0 = float(1.0 / np.median(inv))
             invs.append(inv)
         # background and noise of the frame itself (the skew correction; the localiser's background)
-        rb, rn = noise_maps(np.ascontiguousarray(frame, np.float32),
+        rb, rn = noise_maps(f32,
                             tile=max(int(tile), int(math.sqrt(H * W / 256.0))), step=2)
         if cache is not None:
             cache.clear()
@@ -674,9 +675,8 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
     ring = np.zeros(len(rows), np.bool_)
     coarse = np.nonzero(sc >= 2.0)[0]
     if len(coarse):
-        fr = np.ascontiguousarray(frame, np.float32)
         rflag = np.zeros(len(coarse), np.bool_)
-        _ring_test(fr, rb, rn, float(polarity), rows[coarse], cols[coarse], sc[coarse].astype(np.float64), rflag)
+        _ring_test(f32, rb, rn, float(polarity), rows[coarse], cols[coarse], sc[coarse].astype(np.float64), rflag)
         ring[coarse] = rflag
     sig = amp[kk, np.arange(len(rows))] if len(rows) else np.zeros(0)
     reach = np.zeros(len(rows))     # ring-map candidates: radius (px) within which anything is the ring (0: others)
@@ -684,7 +684,7 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         # rings: a centre vote from the rim (ptrack.image.rings), computed where the blob candidates say the
         # frame holds rings (rim pieces are ridges, faint centres sit in rings of the opposite sign)
         if ring_evidence(b1s, b2s, float(polarity), frame, rb, rn, rows, cols, kk):
-            J = polarity * (np.asarray(frame, np.float32) - rb)
+            J = polarity * (f32 - rb)
             need = sorted({ring_scale(R, scales) for R in RING_RADII})
             bands = {s: (blurs[s] - blurs[_SURROUND * s]) * np.float32(polarity) for s in need}
             rc = ring_maps_candidates(bands, J, rn, RING_RATE_SHARE * float(rate), scales, edge=int(edge),
