@@ -392,6 +392,21 @@ def _ridge(b1, b2, sign, rows, cols, out):
         out[k] = l1 < 0 and l2 > 0.5 * l1
 
 
+@nb.njit(cache=True)
+def _patch_mosaic(frame, background, rows, cols, h, sign, out):
+    # the (2h + 1)^2 patches of sign * (frame - background) about each (row, col), side by side in `out`
+    # (float32, as the frame's float32 copy minus the map; pixels beyond the border repeat the edge)
+    H, W = frame.shape
+    sg = np.float32(sign)
+    n = 2 * h + 1
+    for k in range(rows.shape[0]):
+        for i in range(n):
+            r = min(max(rows[k] + i - h, 0), H - 1)
+            for j in range(n):
+                c = min(max(cols[k] + j - h, 0), W - 1)
+                out[i, k * n + j] = sg * (np.float32(frame[r, c]) - background[r, c])
+
+
 def ring_evidence(b1s, b2s, sign, frame, background, noise_pix, rows, cols, kk, min_count: int = 3,
                   min_fraction: float = 0.2, max_dip_tests: int = 64):
     """Whether the blob candidates of a frame say it holds rings (so the ring maps are worth their cost).
@@ -439,12 +454,9 @@ def ring_evidence(b1s, b2s, sign, frame, background, noise_pix, rows, cols, kk, 
     m = min(n, int(max_dip_tests))
     sel = np.linspace(0, n - 1, m).astype(np.int64)
     h = 10
-    off = np.arange(-h, h + 1)
-    rr = np.clip(rows[sel][:, None, None] + off[None, :, None], 0, H - 1)
-    cc = np.clip(cols[sel][:, None, None] + off[None, None, :], 0, W - 1)
-    # the patches' pixels gathered first, then made float32 (converting the whole frame cost more than the test)
-    patches = float(sign) * (np.asarray(frame)[rr, cc].astype(np.float32) - background[rr, cc])
-    mosaic = np.ascontiguousarray(patches.transpose(1, 0, 2).reshape(2 * h + 1, (2 * h + 1) * m), np.float32)
+    mosaic = np.empty((2 * h + 1, (2 * h + 1) * m), np.float32)
+    _patch_mosaic(np.ascontiguousarray(frame), np.ascontiguousarray(background, np.float32), rows[sel], cols[sel],
+                  h, float(sign), mosaic)
     dip = has_dip(mosaic, h + (2 * h + 1) * np.arange(m, dtype=float), np.full(m, float(h)),
                   noise_pix[rows[sel], cols[sel]], np.full(m, float(h)))
     return bool(dip.sum() >= max(min_count, min_fraction * m))
