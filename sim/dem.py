@@ -161,51 +161,56 @@ def _interaction_forces(pos, vel, omega, radius, mass, charge, model, cp, cpw, p
         wall_law_forces(pos, radius, charge, walls, wall_laws, force)
 
 
+@njit(cache=True, inline="always")
+def _check_one(x, y, z, vx, vy, vz, bottom, vmax2):
+    # the blow-up status of one particle at (x, y, z) m with velocity (vx, vy, vz) m/s (OK if none)
+    v2 = vx * vx + vy * vy + vz * vz
+    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z) and math.isfinite(v2)):
+        return BLOWUP_NAN
+    if bottom and z < 0.0:
+        return BLOWUP_WALL
+    if v2 > vmax2:
+        return BLOWUP_SPEED
+    return OK
+
+
 @njit(cache=True)
 def _check(pos, vel, radius, guards):
     """Return (status, particle) for NaN, substrate crossing, runaway speed."""
     vmax2 = guards[G_V_MAX] * guards[G_V_MAX]
     bottom = guards[G_HAS_BOTTOM] != 0.0
     for i in range(pos.shape[0]):
-        z = pos[i, 2]
-        v2 = vel[i, 0] * vel[i, 0] + vel[i, 1] * vel[i, 1] + vel[i, 2] * vel[i, 2]
-        if not (math.isfinite(pos[i, 0]) and math.isfinite(pos[i, 1]) and math.isfinite(z)
-                and math.isfinite(v2)):
-            return BLOWUP_NAN, i
-        if bottom and z < 0.0:
-            return BLOWUP_WALL, i
-        if v2 > vmax2:
-            return BLOWUP_SPEED, i
+        st = _check_one(pos[i, 0], pos[i, 1], pos[i, 2], vel[i, 0], vel[i, 1], vel[i, 2], bottom, vmax2)
+        if st != OK:
+            return st, i
     return OK, -1
 
 
-@njit(cache=True, inline="always")
-def _half_kick(vel, omega, force, torque, mass, inertia, hdt, rotation):
-    # velocity-Verlet half kick (hdt = dt / 2, s) of the velocities (m/s) and, with rotation, the angular
-    # velocities (rad/s), in place; both kicks of a step
-    n = vel.shape[0]
-    for i in range(n):
-        im = hdt / mass[i]
-        vel[i, 0] += im * force[i, 0]
-        vel[i, 1] += im * force[i, 1]
-        vel[i, 2] += im * force[i, 2]
-    if rotation:
-        for i in range(n):
-            ii = hdt / inertia[i]
-            omega[i, 0] += ii * torque[i, 0]
-            omega[i, 1] += ii * torque[i, 1]
-            omega[i, 2] += ii * torque[i, 2]
+@njit(cache=True)
+def _kick_factors(mass, inertia, hdt, rotation, kick):
+    """``kick[0] = hdt / mass`` (s/kg) and, with rotation, ``kick[1] = hdt / inertia`` (s/(kg m^2)): the
+    half-kick factors of every particle, in place.  Computed once per stepper call and after every
+    rebuild (which may re-order the particles) instead of twice per particle and step: the same
+    divisions, so the same factors bit for bit, without four divisions per particle and step."""
+    for i in range(mass.shape[0]):
+        kick[0, i] = hdt / mass[i]
+        if rotation:
+            kick[1, i] = hdt / inertia[i]
 
 
 @njit(cache=True)
-def _kick_drift(pos, vel, omega, force, torque, mass, inertia, ref_pos, hdt, dt, rotation, skin):
-    """First half of a velocity-Verlet step in one pass over the particles: half kick of ``vel`` (and
-    ``omega``), drift of ``pos``; returns True when some particle moved more than skin/2 since the list
-    was built (:func:`sim.neighbors.needs_rebuild`, the same test).  The same arithmetic per particle
-    as :func:`_half_kick`, the drift and ``needs_rebuild`` one after the other."""
-    d2max = 0.0
-    for i in range(pos.shape[0]):
-        im = hdt / mass[i]
+def _kick_check(pos, vel, omega, force, torque, kick, rotation, guards):
+    """The step's second velocity-Verlet half kick of the velocities (m/s) and, with rotation, the
+    angular velocities (rad/s), in place, with the factors of :func:`_kick_factors`, and the blow-up
+    checks of :func:`_check` on the kicked state in the same pass over the particles (one pass over
+    ``pos`` and ``vel`` less per step).  Every particle is kicked; returns ``(status, particle)`` of the
+    first particle :func:`_check` would report."""
+    vmax2 = guards[G_V_MAX] * guards[G_V_MAX]
+    bottom = guards[G_HAS_BOTTOM] != 0.0
+    st = OK
+    p = -1
+    for i in range(vel.shape[0]):
+        im = kick[0, i]
         vx = vel[i, 0] + im * force[i, 0]
         vy = vel[i, 1] + im * force[i, 1]
         vz = vel[i, 2] + im * force[i, 2]
@@ -213,7 +218,36 @@ def _kick_drift(pos, vel, omega, force, torque, mass, inertia, ref_pos, hdt, dt,
         vel[i, 1] = vy
         vel[i, 2] = vz
         if rotation:
-            ii = hdt / inertia[i]
+            ii = kick[1, i]
+            omega[i, 0] += ii * torque[i, 0]
+            omega[i, 1] += ii * torque[i, 1]
+            omega[i, 2] += ii * torque[i, 2]
+        if p < 0:
+            sti = _check_one(pos[i, 0], pos[i, 1], pos[i, 2], vx, vy, vz, bottom, vmax2)
+            if sti != OK:
+                st = sti
+                p = i
+    return st, p
+
+
+@njit(cache=True)
+def _kick_drift(pos, vel, omega, force, torque, kick, ref_pos, dt, rotation, skin):
+    """First half of a velocity-Verlet step in one pass over the particles: half kick of ``vel`` (and
+    ``omega``; factors of :func:`_kick_factors`), drift of ``pos``; returns True when some particle moved
+    more than skin/2 since the list was built (:func:`sim.neighbors.needs_rebuild`, the same test).  The
+    same arithmetic per particle as :func:`_kick_check`, the drift and ``needs_rebuild`` one after the
+    other."""
+    d2max = 0.0
+    for i in range(pos.shape[0]):
+        im = kick[0, i]
+        vx = vel[i, 0] + im * force[i, 0]
+        vy = vel[i, 1] + im * force[i, 1]
+        vz = vel[i, 2] + im * force[i, 2]
+        vel[i, 0] = vx
+        vel[i, 1] = vy
+        vel[i, 2] = vz
+        if rotation:
+            ii = kick[1, i]
             omega[i, 0] += ii * torque[i, 0]
             omega[i, 1] += ii * torque[i, 1]
             omega[i, 2] += ii * torque[i, 2]
@@ -356,6 +390,13 @@ def _end_step(pos, vel, radius, guards, diag, chunk_peaks, t_done):
     Returns ``(status, particle, stop)``: a status code other than OK (with its particle) ends the chunk
     with that status; ``stop`` ends it with OK once the time ``t_done`` (s) reaches ``guards[G_T_STOP]``.
     """
+    st, p = _check(pos, vel, radius, guards)
+    return _end_step_checked(st, p, guards, diag, chunk_peaks, t_done)
+
+
+@njit(cache=True)
+def _end_step_checked(st, p, guards, diag, chunk_peaks, t_done):
+    """:func:`_end_step` with the result ``(st, p)`` of :func:`_check` given (:func:`_kick_check`)."""
     if diag[D_MAX_OVERLAP] > chunk_peaks[P_OVERLAP]:
         chunk_peaks[P_OVERLAP] = diag[D_MAX_OVERLAP]
     if diag[D_MAX_W2] > chunk_peaks[P_W2]:
@@ -364,7 +405,6 @@ def _end_step(pos, vel, radius, guards, diag, chunk_peaks, t_done):
         chunk_peaks[P_DAMP] = diag[D_MAX_DAMP]
     if diag[D_MAX_OVERLAP] > guards[G_MAX_OVERLAP]:
         return BLOWUP_OVERLAP, int(diag[D_MAX_OVERLAP_I]), True
-    st, p = _check(pos, vel, radius, guards)
     if st != OK:
         return st, p, True
     # the overdamped stepper's variable steps reached the requested time
@@ -390,25 +430,29 @@ def _run_verlet(nsteps, dt, step0, phi, n_iter,
     t_done = 0.0
     hdt = 0.5 * dt
     pairs = model != CONTACT_NONE or pair_laws.shape[0] > 0
+    kick = np.empty((2, pos.shape[0]))
+    _kick_factors(mass, inertia, hdt, rotation, kick)
     for s in range(nsteps):
         step = step0 + s + 1
         # kick + drift + skin test in one pass, external forces with the zeroing in one pass: the
-        # arithmetic of _half_kick, the drift, needs_rebuild and _forces in the same order per particle,
+        # arithmetic of the half kick, the drift, needs_rebuild and _forces in the same order per particle,
         # so the results are those of the separate loops bit for bit
-        if _kick_drift(pos, vel, omega, force, torque, mass, inertia, ref_pos, hdt, dt, rotation, skin):
+        if _kick_drift(pos, vel, omega, force, torque, kick, ref_pos, dt, rotation, skin):
             start, nbj, shift, hist = _rebuild_any(pos, image, vel, omega, force, torque, radius, mass,
                                                    inertia, charge, gamma, fconst, frozen, whist, order,
                                                    cutoff, skin, lo, length, periodic, start, nbj, hist,
                                                    ref_pos)
+            if order is not None:  # the rebuild re-ordered the particles
+                _kick_factors(mass, inertia, hdt, rotation, kick)
             nbuild += 1
         _begin_forces(vel, radius, charge, gamma, fconst, drag_mode, extp, seed, step, dt, rotation, force,
                       torque, diag)
         _interaction_forces(pos, vel, omega, radius, mass, charge, model, cp, cpw, pair_laws, wall_laws,
                             rotation, walls, whist, start, nbj, shift, hist, force, torque, dt, diag, fbuf,
                             tbuf, dbuf, pairs)
-        _half_kick(vel, omega, force, torque, mass, inertia, hdt, rotation)
+        cst, cpart = _kick_check(pos, vel, omega, force, torque, kick, rotation, guards)
         t_done += dt
-        st, p, stop = _end_step(pos, vel, radius, guards, diag, chunk_peaks, t_done)
+        st, p, stop = _end_step_checked(cst, cpart, guards, diag, chunk_peaks, t_done)
         if stop:
             return st, s + 1, p, start, nbj, shift, hist, ref_pos, nbuild, t_done
     if force_rebuild_at_end:
