@@ -31,6 +31,7 @@ import numpy as np
 import pandas as pd
 
 from .errors import UserError, check_positive, require_file
+from .gdpt.ncc import ncc
 
 _COMMON_WINDOW = True     # compare the pages around the best one on one window (see _match_one)
 _COMMON_PAGES = 2         # pages either side of the best one (4: diffusion3d a little better, a close pair worse)
@@ -551,7 +552,7 @@ def _weighted_ncc(win, wts, t):
     t = np.ascontiguousarray(t, np.float32)
     w = np.ascontiguousarray(wts, np.float32)
     if float(w.min()) >= 0.999:
-        return cv2.matchTemplate(win, t, cv2.TM_CCOEFF_NORMED)     # no neighbour's light here: the plain NCC
+        return ncc(win, t)     # no neighbour's light here: the plain NCC
     wi = w * win
     A = cv2.matchTemplate(wi, t, cv2.TM_CCORR).astype(np.float64)
     B = cv2.matchTemplate(w, t, cv2.TM_CCORR).astype(np.float64)
@@ -628,7 +629,7 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
             return _masked_ncc(win, t, r0, r1, c0, c1)
         if weight is not None:
             return _weighted_ncc(win, wts(ri - h - m, ri + h + m + 1, ci - h - m, ci + h + m + 1), t)
-        return cv2.matchTemplate(win, t, cv2.TM_CCOEFF_NORMED)
+        return ncc(win, t)
 
     def wts(a0, a1, b0, b1):
         N, b, noise = weight
@@ -646,7 +647,7 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
             out[a0:a1, b0:b1] = _weighted_ncc(win, wts(ri - h - m + a0, ri + h - m + a1, ci - h - m + b0,
                                                        ci + h - m + b1), t)
         else:
-            out[a0:a1, b0:b1] = cv2.matchTemplate(win, t, cv2.TM_CCOEFF_NORMED)
+            out[a0:a1, b0:b1] = ncc(win, t)
         return out
 
     maps = np.full((K, n, n), -1.0, np.float32)
@@ -894,7 +895,7 @@ def _still_there(resimg, pad, tmpl, calib: Calibration, r, c, k, c_min: float, s
     if top < 0 or left < 0 or top + T + 2 > resimg.shape[0] or left + T + 2 > resimg.shape[1]:
         return True
     win = resimg[top:top + T + 2, left:left + T + 2]
-    R = cv2.matchTemplate(win, t, cv2.TM_CCOEFF_NORMED)
+    R = ncc(win, t)
     mx = float(R.max())
     if mx != mx:                        # a constant window (padding) gives NaN
         R = np.nan_to_num(R, nan=-1.0)

@@ -93,6 +93,7 @@ def refine_full(img, calib, df, f: int, smooth: float = 1.5, small: int = 64):
     import cv2
 
     from ..calibration import _gauss3, _quadratic_peak, _subpixel_peaks
+    from .ncc import ncc
 
     if len(df) == 0:
         return df
@@ -120,7 +121,7 @@ def refine_full(img, calib, df, f: int, smooth: float = 1.5, small: int = 64):
         top, left = int(round(ys[i] - cy)) - m, int(round(xs[i] - cx)) - m
         if top < 0 or left < 0 or top + T + 2 * m > H or left + T + 2 * m > W:
             continue
-        R = cv2.matchTemplate(sm[top:top + T + 2 * m, left:left + T + 2 * m], t, cv2.TM_CCOEFF_NORMED)
+        R = ncc(sm[top:top + T + 2 * m, left:left + T + 2 * m], t)
         a, b = np.unravel_index(int(np.argmax(R)), R.shape)
         y0, x0 = top + a + cy, left + b + cx           # integer-placed centre
         if T < small:
@@ -142,7 +143,7 @@ def refine_full(img, calib, df, f: int, smooth: float = 1.5, small: int = 64):
                 tp, lf = int(round(y0 - calib.centers[j][0])) - 1, int(round(x0 - calib.centers[j][1])) - 1
                 if tp < 0 or lf < 0 or tp + Tj + 2 > H or lf + Tj + 2 > W:
                     return False
-                maps[q] = cv2.matchTemplate(sm[tp:tp + Tj + 2, lf:lf + Tj + 2], tj, cv2.TM_CCOEFF_NORMED)
+                maps[q] = ncc(sm[tp:tp + Tj + 2, lf:lf + Tj + 2], tj)
                 done[q] = True
             return True
 

@@ -1,0 +1,32 @@
+"""ptrack.gdpt.ncc: the direct small-map correlation agrees with OpenCV's TM_CCOEFF_NORMED."""
+import cv2
+import numpy as np
+import pytest
+
+from ptrack.gdpt import ncc as N
+
+
+@pytest.mark.parametrize("T,m", [(5, 1), (17, 4), (51, 2), (51, 4), (75, 5)])
+def test_direct_matches_opencv(T, m):
+    rng = np.random.default_rng(T * 10 + m)
+    yy, xx = np.mgrid[:T, :T] - T // 2
+    t = (np.exp(-(xx ** 2 + yy ** 2) / (0.1 * T * T)) + 0.05 * rng.random((T, T))).astype(np.float32)
+    big = (50 + 100 * rng.random((T + 2 * m + 6, T + 2 * m + 6))).astype(np.float32)
+    win = big[3:3 + T + 2 * m, 2:2 + T + 2 * m]            # a strided view, as the matcher passes
+    got = N.ncc(win, t)
+    ref = cv2.matchTemplate(np.ascontiguousarray(win), t, cv2.TM_CCOEFF_NORMED)
+    assert got.shape == ref.shape and got.dtype == np.float32
+    assert (2 * m + 1) ** 2 <= N.DIRECT_MAX
+    np.testing.assert_allclose(got, ref, atol=2e-6)
+
+
+def test_constant_window_is_minus_one():
+    t = np.random.default_rng(1).random((9, 9)).astype(np.float32)
+    assert np.all(N.ncc(np.zeros((13, 13), np.float32), t) == -1.0)
+
+
+def test_large_maps_use_opencv():
+    rng = np.random.default_rng(2)
+    t = rng.random((9, 9)).astype(np.float32)
+    img = rng.random((64, 64)).astype(np.float32)
+    np.testing.assert_array_equal(N.ncc(img, t), cv2.matchTemplate(img, t, cv2.TM_CCOEFF_NORMED))
