@@ -85,11 +85,13 @@ def param_tuple(cp):
 
 
 @njit(cache=True, inline="always")
-def _law(model, cp, delta, nx, ny, nz, d, ri, rj, wall, meff,
+def _law(model, cp, delta, nx, ny, nz, d, ri, rj, wall, meff, sqkm, invm,
          vrx, vry, vrz, wsx, wsy, wsz, sx, sy, sz, dt):
     """Contact force on i (along n from j to i) and the tangential part.
 
-    ``cp`` is the parameter tuple of :func:`param_tuple`; ``ws = R_i w_i + R_j w_j``
+    ``cp`` is the parameter tuple of :func:`param_tuple`; ``meff`` the effective mass (kg) and, for
+    the Hooke law, ``sqkm = sqrt(kn meff)`` (kg/s) and ``invm = 1 / meff`` (1/kg), which the caller
+    gives (:func:`_hooke_mass_terms`: a row of equal-mass partners shares them); ``ws = R_i w_i + R_j w_j``
     (for a wall: ``R_i w_i``); ``s`` the tangential spring of this contact (m).
     Returns ``(fx, fy, fz, tfx, tfy, tfz, sx, sy, sz, w2, dr)``: total force on i,
     its tangential part, the updated spring, and k/m_eff (1/s^2) and eta/m_eff
@@ -112,18 +114,15 @@ def _law(model, cp, delta, nx, ny, nz, d, ri, rj, wall, meff,
     mu_d = 0.0
     if model == CONTACT_HOOKE:
         kn = cp[0]
-        # one division and one square root per contact (the hot path)
-        sq = math.sqrt(kn * meff)
-        eta = 2.0 * cp[2] * sq
+        eta = 2.0 * cp[2] * sqkm
         fc = kn * delta
         fn = fc - eta * vn
         kt_eff = cp[1]
         damp_t = cp[3] * eta
         mu_s = cp[4]
         mu_d = cp[4]
-        inv = 1.0 / meff
-        w2 = kn * inv
-        dr = eta * inv
+        w2 = kn * invm
+        dr = eta * invm
     else:
         if wall:
             eps = delta / ri
@@ -208,6 +207,16 @@ def _law(model, cp, delta, nx, ny, nz, d, ri, rj, wall, meff,
     return fx, fy, fz, tfx, tfy, tfz, sx, sy, sz, w2, dr
 
 
+@njit(cache=True, inline="always")
+def _hooke_mass_terms(model, cp, meff):
+    """``(sqrt(kn meff), 1 / meff)`` of the Hooke law (kg/s, 1/kg) for the effective mass ``meff`` (kg);
+    zeros for the other laws, which do not use them.  One square root and one division, the hot path's
+    cost per contact: :func:`_pair_rows` computes them once per row for partners of the row's mass."""
+    if model == CONTACT_HOOKE:
+        return math.sqrt(cp[0] * meff), 1.0 / meff
+    return 0.0, 0.0
+
+
 @njit(cache=True)
 def _pair_rows(i0, i1, pos, vel, omega, radius, mass, charge, start, nbj, shift, hist,
                force, torque, model, cp, laws, rotation, dt, diag):
@@ -232,6 +241,13 @@ def _pair_rows(i0, i1, pos, vel, omega, radius, mass, charge, start, nbj, shift,
         zi = pos[i, 2]
         ri = radius[i]
         mi = mass[i]
+        # the effective mass with a touching partner of the same mass and its Hooke terms, computed at the
+        # row's first such contact and reused: the same expressions as per pair, so bit for bit the same
+        # values (equal-mass packings: every pair); lazily, so rows without contacts pay nothing
+        have_ii = False
+        meff_ii = 0.0
+        sq_ii = 0.0
+        inv_ii = 0.0
         vxi = vel[i, 0]
         vyi = vel[i, 1]
         vzi = vel[i, 2]
@@ -273,7 +289,17 @@ def _pair_rows(i0, i1, pos, vel, omega, radius, mass, charge, start, nbj, shift,
                     diag[0] = ov
                     diag[1] = i
                 mj = mass[j]
-                meff = mi * mj / (mi + mj)
+                if mj == mi:
+                    if not have_ii:
+                        meff_ii = mi * mj / (mi + mj)
+                        sq_ii, inv_ii = _hooke_mass_terms(model, c, meff_ii)
+                        have_ii = True
+                    meff = meff_ii
+                    sqkm = sq_ii
+                    invm = inv_ii
+                else:
+                    meff = mi * mj / (mi + mj)
+                    sqkm, invm = _hooke_mass_terms(model, c, meff)
                 vrx = vxi - vel[j, 0]
                 vry = vyi - vel[j, 1]
                 vrz = vzi - vel[j, 2]
@@ -286,8 +312,8 @@ def _pair_rows(i0, i1, pos, vel, omega, radius, mass, charge, start, nbj, shift,
                     wsy = 0.0
                     wsz = 0.0
                 fx, fy, fz, tfx, tfy, tfz, sx, sy, sz, w2, dr = _law(model, c, delta, nx, ny, nz, r, ri, rj, False,
-                                                                     meff, vrx, vry, vrz, wsx, wsy, wsz, hist[k, 0],
-                                                                     hist[k, 1], hist[k, 2], dt)
+                                                                     meff, sqkm, invm, vrx, vry, vrz, wsx, wsy, wsz,
+                                                                     hist[k, 0], hist[k, 1], hist[k, 2], dt)
                 hist[k, 0] = sx
                 hist[k, 1] = sy
                 hist[k, 2] = sz
@@ -394,10 +420,11 @@ def pair_forces_parallel(pos, vel, omega, radius, mass, charge, start, nbj, shif
 
 
 @njit(cache=True, inline="always")
-def wall_contact(model, c, d, ri, mi, vx, vy, vz, ox, oy, oz, nx, ny, nz, sx, sy, sz, rotation, dt):
+def wall_contact(model, c, d, ri, mi, sqkm, invm, vx, vy, vz, ox, oy, oz, nx, ny, nz, sx, sy, sz, rotation, dt):
     """Contact of a sphere (radius ``ri``, mass ``mi``, velocity ``v``, angular velocity ``o``,
     tangential spring ``s``) whose centre is ``d`` from a wall plane of inward normal ``n``; call it
-    only when ``d < ri``.  ``c``: :func:`param_tuple`.  Returns ``(fx, fy, fz, tx, ty, tz, sx, sy, sz,
+    only when ``d < ri``.  ``c``: :func:`param_tuple`; ``sqkm, invm``: :func:`_hooke_mass_terms` of
+    ``mi`` (the wall's effective mass is the sphere's).  Returns ``(fx, fy, fz, tx, ty, tz, sx, sy, sz,
     w2, dr)``: force, torque, updated spring and the time-step diagnostics of :func:`_law`."""
     delta = ri - d
     dd = d if d > 0.0 else 0.0
@@ -410,7 +437,7 @@ def wall_contact(model, c, d, ri, mi, vx, vy, vz, ox, oy, oz, nx, ny, nz, sx, sy
         wsy = 0.0
         wsz = 0.0
     fx, fy, fz, tfx, tfy, tfz, sx, sy, sz, w2, dr = _law(model, c, delta, nx, ny, nz, dd, ri, 0.0, True, mi,
-                                                         vx, vy, vz, wsx, wsy, wsz, sx, sy, sz, dt)
+                                                         sqkm, invm, vx, vy, vz, wsx, wsy, wsz, sx, sy, sz, dt)
     tx = 0.0
     ty = 0.0
     tz = 0.0
@@ -433,6 +460,11 @@ def wall_forces(pos, vel, omega, radius, mass, walls, whist, force, torque, mode
     nw = walls.shape[0]
     c = param_tuple(cp)
     ncontact = 0
+    # the Hooke mass terms of the last mass seen: recomputed only when the mass changes (equal-mass
+    # packings: once), the same values bit for bit
+    m_last = np.nan
+    sqkm = 0.0
+    invm = 0.0
     for w in range(nw):
         px = walls[w, 0]
         py = walls[w, 1]
@@ -455,8 +487,12 @@ def wall_forces(pos, vel, omega, radius, mass, walls, whist, force, torque, mode
             if ov > diag[0]:
                 diag[0] = ov
                 diag[1] = i
+            mi = mass[i]
+            if mi != m_last:
+                sqkm, invm = _hooke_mass_terms(model, c, mi)
+                m_last = mi
             fx, fy, fz, tx, ty, tz, sx, sy, sz, w2, dr = wall_contact(
-                model, c, d, ri, mass[i], vel[i, 0], vel[i, 1], vel[i, 2], omega[i, 0], omega[i, 1], omega[i, 2],
+                model, c, d, ri, mi, sqkm, invm, vel[i, 0], vel[i, 1], vel[i, 2], omega[i, 0], omega[i, 1], omega[i, 2],
                 nx, ny, nz, whist[k, 0], whist[k, 1], whist[k, 2], rotation, dt)
             whist[k, 0] = sx
             whist[k, 1] = sy
