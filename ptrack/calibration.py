@@ -31,7 +31,7 @@ import numpy as np
 import pandas as pd
 
 from .errors import UserError, check_positive, require_file
-from .gdpt.ncc import ncc
+from .gdpt.ncc import Templates, ncc, ncc_pages
 
 _COMMON_WINDOW = True     # compare the pages around the best one on one window (see _match_one)
 _COMMON_PAGES = 2         # pages either side of the best one (4: diffusion3d a little better, a close pair worse)
@@ -503,10 +503,10 @@ def _prepare_matching(img, calib: Calibration, smooth: float, margin: int):
     m = int(margin)
     pad = calib.size // 2 + m + 1
     img = np.ascontiguousarray(img, np.float32)
-    tmpl = list(calib.templates)
+    tmpl = Templates(calib.templates)
     if smooth and smooth > 0:
         img = cv2.GaussianBlur(img, (0, 0), sigmaX=float(smooth))
-        tmpl = [cv2.GaussianBlur(t, (0, 0), sigmaX=float(smooth)) for t in tmpl]
+        tmpl = Templates(cv2.GaussianBlur(t, (0, 0), sigmaX=float(smooth)) for t in tmpl)
     padded = cv2.copyMakeBorder(img, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0.0)
     return padded, pad, tmpl
 
@@ -653,20 +653,30 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
         return out
 
     maps = np.full((K, n, n), -1.0, np.float32)
+    # the plain correlations of many pages in one call (not for cut images or weighted matching, page by page)
+    batch = weight is None and not masked and isinstance(tmpl, Templates)
     if coarse and K > 4 * coarse:
         # coarse to fine: every ``coarse``-th page first, then every page within a coarse step + 1 of the best
         # (templates interpolated between recorded pages: at the +-2 shifts around the coarse stage's best only,
         # unless the image is cut by the frame edge and needs the masked correlation)
         first = np.arange(0, K, coarse)
-        for k in first:
-            maps[k] = corr(k)
+        if batch:
+            maps[first] = ncc_pages(padded, ri, ci, m, tmpl, first)
+        else:
+            for k in first:
+                maps[k] = corr(k)
         np.copyto(maps, -1.0, where=np.isnan(maps))    # a constant window (padding) gives NaN
         best = int(first[np.argmax(maps[first].reshape(len(first), -1).max(1))])
         lo, hi = max(0, best - coarse - 1), min(K, best + coarse + 2)
         i0, j0 = np.unravel_index(int(np.argmax(maps[best])), (n, n))
         near = fine_margin is not None and not masked and m > fine_margin
-        for k in range(lo, hi):
-            if k % coarse:
+        ks = [k for k in range(lo, hi) if k % coarse]
+        if batch and ks:
+            rows = (max(i0 - fine_margin, 0), min(i0 + fine_margin, n - 1) + 1) if near else None
+            cols = (max(j0 - fine_margin, 0), min(j0 + fine_margin, n - 1) + 1) if near else None
+            maps[ks] = ncc_pages(padded, ri, ci, m, tmpl, ks, rows=rows, cols=cols)
+        else:
+            for k in ks:
                 maps[k] = corr_near(k, i0, j0, fine_margin) if near else corr(k)
         np.copyto(maps, -1.0, where=np.isnan(maps))
         done = np.union1d(first, np.arange(lo, hi))
@@ -691,11 +701,17 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
         Tc = min(sizes)
         if max(sizes) > Tc:
             i0, j0 = np.unravel_index(int(np.argmax(maps[k])), (n, n))
-            for q in range(lo2, hi2):
-                t = tmpl[q]
-                o = (t.shape[0] - Tc) // 2
-                tc = t[o:o + Tc, o:o + Tc] if o else t
-                maps[q] = corr_near(q, i0, j0, min(2, m), tc) if m > 2 else corr(q, tc)
+            if batch:
+                near2 = m > 2
+                maps[lo2:hi2] = ncc_pages(padded, ri, ci, m, tmpl, np.arange(lo2, hi2), crop=Tc,
+                                          rows=(max(i0 - 2, 0), min(i0 + 2, n - 1) + 1) if near2 else None,
+                                          cols=(max(j0 - 2, 0), min(j0 + 2, n - 1) + 1) if near2 else None)
+            else:
+                for q in range(lo2, hi2):
+                    t = tmpl[q]
+                    o = (t.shape[0] - Tc) // 2
+                    tc = t[o:o + Tc, o:o + Tc] if o else t
+                    maps[q] = corr_near(q, i0, j0, min(2, m), tc) if m > 2 else corr(q, tc)
             np.copyto(maps, -1.0, where=np.isnan(maps))
             pk = _subpixel_peaks(maps[lo2:hi2])
             kk = int(np.argmax(pk))

@@ -94,3 +94,53 @@ def ncc(win, t) -> np.ndarray:
     import cv2
 
     return cv2.matchTemplate(win, t, cv2.TM_CCOEFF_NORMED)
+
+
+@njit(cache=True)
+def _ncc_pages(img, ri, ci, m, flat, offs, sizes, pages, crop, a0, a1, b0, b1, out):
+    # one match's correlations for many pages in one call (the per-call overhead of ~60 small maps per match)
+    for q in range(len(pages)):
+        k = pages[q]
+        T = sizes[k]
+        t = flat[offs[k]:offs[k] + T * T].reshape((T, T))
+        Tc = crop if crop > 0 else T
+        o = (T - Tc) // 2
+        h = Tc // 2
+        win = img[ri - h - m + a0: ri + h - m + a1, ci - h - m + b0: ci + h - m + b1]
+        out[q, :, :] = -1.0
+        out[q, a0:a1, b0:b1] = _ncc_direct(win, t[o:o + Tc, o:o + Tc])
+
+
+class Templates(list):
+    """A list of square float32 templates that also holds them packed in one buffer (for :func:`ncc_pages`)."""
+
+    _packed = None
+
+    @property
+    def packed(self):
+        if self._packed is None:
+            sizes = np.array([t.shape[0] for t in self], np.int64)
+            offs = np.concatenate([[0], np.cumsum(sizes * sizes)[:-1]]).astype(np.int64)
+            flat = np.concatenate([np.ascontiguousarray(t, np.float32).ravel() for t in self])
+            self._packed = (flat, offs, sizes)
+        return self._packed
+
+
+def ncc_pages(img, ri, ci, m, tmpl: Templates, pages, crop=0, rows=None, cols=None) -> np.ndarray:
+    """Maps of :func:`ncc` of each page's template (cropped about its centre to ``crop`` px if > 0) over the
+    window of ``img`` centred on pixel (ri, ci), at the (2 m + 1)^2 shifts (only those in ``rows`` x ``cols``, a
+    pair of (start, stop) map indices; -1 elsewhere), as ``ptrack.calibration._match_one`` places them.
+
+    Returns
+    -------
+    (len(pages), 2 m + 1, 2 m + 1) float32 array
+    """
+    n = 2 * m + 1
+    a0, a1 = rows if rows is not None else (0, n)
+    b0, b1 = cols if cols is not None else (0, n)
+    flat, offs, sizes = tmpl.packed
+    pages = np.asarray(pages, np.int64)
+    out = np.empty((len(pages), n, n), np.float32)
+    _ncc_pages(img, int(ri), int(ci), int(m), flat, offs, sizes, pages, int(crop), int(a0), int(a1), int(b0),
+               int(b1), out)
+    return out
