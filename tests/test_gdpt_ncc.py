@@ -30,3 +30,25 @@ def test_large_maps_use_opencv():
     t = rng.random((9, 9)).astype(np.float32)
     img = rng.random((64, 64)).astype(np.float32)
     np.testing.assert_array_equal(N.ncc(img, t), cv2.matchTemplate(img, t, cv2.TM_CCOEFF_NORMED))
+
+
+def test_pages_match_one_by_one():
+    """ncc_pages (packed templates, crops, a sub-range of shifts) = ncc per page on the window _match_one cuts."""
+    rng = np.random.default_rng(3)
+    tm = N.Templates(rng.random((T, T)).astype(np.float32) for T in (7, 9, 13, 15))
+    img = rng.random((60, 60)).astype(np.float32)
+    ri, ci, m = 30, 28, 3
+    n = 2 * m + 1
+    for crop, rows, cols in ((0, None, None), (7, None, None), (0, (1, 6), (2, 7))):
+        got = N.ncc_pages(img, ri, ci, m, tm, [0, 2, 3] if crop == 0 else [1, 3], crop=crop, rows=rows, cols=cols)
+        for q, k in enumerate([0, 2, 3] if crop == 0 else [1, 3]):
+            t = tm[k]
+            Tc = crop or t.shape[0]
+            o = (t.shape[0] - Tc) // 2
+            h = Tc // 2
+            ref = np.full((n, n), -1.0, np.float32)
+            a0, a1 = rows or (0, n)
+            b0, b1 = cols or (0, n)
+            ref[a0:a1, b0:b1] = N.ncc(img[ri - h - m + a0:ri + h - m + a1, ci - h - m + b0:ci + h - m + b1],
+                                      t[o:o + Tc, o:o + Tc])
+            np.testing.assert_array_equal(got[q], ref)
