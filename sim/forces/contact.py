@@ -454,8 +454,8 @@ def wall_forces(pos, vel, omega, radius, mass, walls, whist, force, torque, mode
     """Forces from plane walls.  ``walls`` (W, 6): a point on the plane and its
     unit normal pointing into the domain.  ``whist`` (N*W, 3) tangential springs
     (row ``i*W + w``).  A particle touches wall w when its centre is closer than
-    its radius to the plane (or behind it).  (The velocity-Verlet stepper of
-    :mod:`sim.dem` does the same per particle, fused with its kick.)"""
+    its radius to the plane (or behind it).  Every stepper of :mod:`sim.dem`
+    calls this function: the wall law has one copy."""
     n = pos.shape[0]
     nw = walls.shape[0]
     c = param_tuple(cp)
