@@ -1087,7 +1087,10 @@ def _split(res, pad, tmpl, calib, hit, model, cap, n_parts, m, z_points, cm_drop
         return parts, pm
 
     seeds = [[dict(hit)], None]
-    if _PAIR_SEEDS and n_parts >= 2:
+    # not in brightfield: a defocused ring correlates with itself at offsets of its radius, so the window's side
+    # maxima there are ring lobes, not second particles (seeded there, the shipped epd_brightfield drift moved
+    # -5.09 -> -5.02 um/s against the rendered -5.26, 0.8 -> 1.1 SE)
+    if _PAIR_SEEDS and n_parts >= 2 and not calib.info.get("signed", False):
         # two images 10-16 px apart at opposite heights are matched as one image between them, and growing the parts
         # from that compromise leaves the second one too little light to be found: seed the parts instead at the
         # best local maxima of the window's correlation map (on the window with the merged model put back), each
