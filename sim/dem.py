@@ -486,19 +486,36 @@ def _run_overdamped(nsteps, dt, step0, phi, n_iter,
         step = step0 + s + 1
         dts = dt
         if guards[G_MAX_STEP] > 0.0:
+            # dts = min(dt, min_i max_step gamma_i / |F_i|) over the free particles.  For one gamma the
+            # bound falls with |F|^2 (a correctly rounded sqrt and division are monotone), so a particle
+            # with the gamma of the last bound computed and no larger |F|^2 than its largest cannot lower
+            # the minimum: its square root and division are skipped (the same minimum bit for bit)
+            g_last = np.nan
+            f2_top = 0.0
             for i in range(n):
                 if frozen[i] == 0.0:
                     f2 = force[i, 0] * force[i, 0] + force[i, 1] * force[i, 1] + force[i, 2] * force[i, 2]
-                    if f2 > 0.0:
+                    if f2 > 0.0 and (gamma[i] != g_last or f2 > f2_top):
                         lim = guards[G_MAX_STEP] * gamma[i] / math.sqrt(f2)
                         if lim < dts:
                             dts = lim
+                        if gamma[i] != g_last:
+                            g_last = gamma[i]
+                            f2_top = f2
+                        elif f2 > f2_top:
+                            f2_top = f2
         stick = guards[G_STICK] != 0.0
         bottom = guards[G_HAS_BOTTOM] != 0.0
+        # the Brownian step sqrt(2 kB T dts / gamma) (m) recomputed only when gamma changes from the last free
+        # particle's (the same expression, so the same value bit for bit)
+        g_sd = np.nan
+        sd = 0.0
         for i in range(n):
             if frozen[i] != 0.0:
                 continue
-            sd = math.sqrt(2.0 * bd_kT * dts / gamma[i]) if bd_kT > 0.0 else 0.0
+            if gamma[i] != g_sd:
+                g_sd = gamma[i]
+                sd = math.sqrt(2.0 * bd_kT * dts / gamma[i]) if bd_kT > 0.0 else 0.0
             for c in range(3):
                 v = force[i, c] / gamma[i]
                 vel[i, c] = v
