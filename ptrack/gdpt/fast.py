@@ -92,17 +92,14 @@ def refine_full(img, calib, df, f: int, smooth: float = 1.5, small: int = 64):
     """
     import cv2
 
-    from ..calibration import _gauss3, _quadratic_peak, _subpixel_peaks
+    from ..calibration import _gauss3, _quadratic_peak, _subpixel_peaks, smoothed_templates
     from .ncc import ncc
 
     if len(df) == 0:
         return df
     H, W = img.shape
     sm = cv2.GaussianBlur(np.ascontiguousarray(img, np.float32), (0, 0), smooth) if smooth else img
-    cache = calib.info.setdefault("_smoothed", {})
-    if smooth not in cache:
-        cache[smooth] = [cv2.GaussianBlur(t, (0, 0), smooth) if smooth else t for t in calib.templates]
-    tm = cache[smooth]
+    tm = smoothed_templates(calib, smooth)
     K = len(tm)
     n_sub = int(calib.info.get("n_sub", 1))
     out = df.copy()
