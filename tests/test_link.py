@@ -1,0 +1,91 @@
+"""The numba linker (ptrack.linknb) against trackpy.link, and ptrack.link's fallback to trackpy."""
+import numpy as np
+import pandas as pd
+import pytest
+
+trackpy = pytest.importorskip("trackpy")
+
+from ptrack.errors import UserError  # noqa: E402
+from ptrack.link import ADAPTIVE_STEP, ADAPTIVE_STOP, link  # noqa: E402
+from ptrack.linknb import link_ids  # noqa: E402
+
+
+def _trackpy_ids(f, rng, memory, pos, stop=ADAPTIVE_STOP, step=ADAPTIVE_STEP):
+    trackpy.quiet()
+    out = trackpy.link(f[["frame", *pos]].copy(), rng, memory=memory, pos_columns=pos, t_column="frame",
+                       adaptive_stop=stop, adaptive_step=step)
+    pid = np.empty(len(f), np.int64)
+    pid[out.index.to_numpy()] = out["particle"].to_numpy()
+    return pid
+
+
+def _same_partition(a, b):
+    pairs = np.unique(np.c_[a, b], axis=0)
+    return len(pairs) == len(np.unique(a)) == len(np.unique(b))
+
+
+def _movie(rng, n, box, n_frames, step, ndim=2, drop=0.15, skip=None):
+    """Random walkers that blink (memory), with births, an empty frame and optionally a missing frame number."""
+    p = rng.uniform(0, box, (n, ndim))
+    rows = []
+    for t in range(n_frames):
+        p = p + rng.normal(0, step, p.shape)
+        keep = rng.random(n) > drop
+        if t == n_frames // 2:
+            keep[:] = False
+        rows += [(t, *q) for q in p[keep]]
+        rows += [(t, *q) for q in rng.uniform(0, box, (3, ndim))]
+    cols = ["frame", "z", "y", "x"][:1] + ["z", "y", "x"][3 - ndim:]
+    f = pd.DataFrame(rows, columns=cols)
+    if skip is not None:
+        f = f[f["frame"] != skip]
+    return f.sort_values("frame", kind="stable").reset_index(drop=True).astype({"frame": np.int64})
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_same_trajectories_as_trackpy(seed):
+    rng = np.random.default_rng(seed)
+    ndim = 3 if seed % 3 == 2 else 2
+    f = _movie(rng, int(rng.integers(50, 300)), 80.0, 10, float(rng.uniform(1, 4)), ndim=ndim,
+               skip=3 if seed % 2 else None)
+    pos = ["z", "y", "x"][3 - ndim:]
+    sr = float(rng.uniform(3, 9))
+    rng_ = (2 * sr, sr, sr) if ndim == 3 else (sr, sr)
+    for memory in (0, 3):
+        a = _trackpy_ids(f, rng_, memory, pos)
+        b = link_ids(f["frame"].to_numpy(), f[pos].to_numpy(), rng_, memory, ADAPTIVE_STOP, ADAPTIVE_STEP)
+        assert _same_partition(a, b)
+
+
+def test_adaptive_splits_as_trackpy():
+    # dense enough that subnetworks are too large at the given range: trackpy's adaptive search splits them
+    rng = np.random.default_rng(11)
+    f = _movie(rng, 400, 60.0, 6, 2.0)
+    pos = ["y", "x"]
+    with pytest.raises(trackpy.linking.SubnetOversizeException):
+        _trackpy_ids(f, (8.0, 8.0), 2, pos, stop=None)
+    a = _trackpy_ids(f, (8.0, 8.0), 2, pos)
+    b = link_ids(f["frame"].to_numpy(), f[pos].to_numpy(), (8.0, 8.0), 2, ADAPTIVE_STOP, ADAPTIVE_STEP)
+    assert _same_partition(a, b)
+    # without adaptive search both give up
+    assert link_ids(f["frame"].to_numpy(), f[pos].to_numpy(), (8.0, 8.0), 2, None) is None
+
+
+def test_gives_up_where_trackpy_raises():
+    # every point within a tiny range of many others: still oversize at adaptive_stop, so the fast path
+    # returns None and link() reports trackpy's failure
+    rng = np.random.default_rng(3)
+    f = pd.DataFrame({"frame": np.repeat([0, 1], 40), "y_px": rng.uniform(0, 0.2, 80), "x_px": rng.uniform(0, 0.2, 80)})
+    assert link_ids(f["frame"].to_numpy(), f[["y_px", "x_px"]].to_numpy(), 1.0, 0, ADAPTIVE_STOP,
+                    ADAPTIVE_STEP) is None
+    with pytest.raises(UserError, match="linking failed"):
+        link(f, search_range=1.0)
+
+
+def test_link_matches_trackpy_with_estimated_range():
+    rng = np.random.default_rng(5)
+    f = _movie(rng, 150, 200.0, 30, 1.5).rename(columns={"y": "y_px", "x": "x_px"})
+    out = link(f)
+    sr = out.attrs["link"]["search_range_px"]
+    a = _trackpy_ids(f, (sr, sr), 3, ["y_px", "x_px"])
+    assert _same_partition(a, out["particle"].to_numpy())
