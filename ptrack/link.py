@@ -104,7 +104,9 @@ def _nn_steps(frames, x, y, max_pairs: int = 20000):
     from scipy.spatial import cKDTree
 
     order = np.argsort(frames, kind="stable")
-    fs, xs, ys = frames[order], x[order], y[order]
+    fs = frames[order]
+    # one (n, 2) array, each frame a slice of it (np.c_ per frame cost more than the trees)
+    pts = np.column_stack((x[order], y[order]))
     ufr, start = np.unique(fs, return_index=True)
     end = np.r_[start[1:], len(fs)]
     dx, dy = [], []
@@ -121,8 +123,8 @@ def _nn_steps(frames, x, y, max_pairs: int = 20000):
     for k in range(len(ufr) - 1):
         if ufr[k + 1] != ufr[k] + 1:
             continue
-        a = np.c_[xs[start[k]:end[k]], ys[start[k]:end[k]]]
-        b = np.c_[xs[start[k + 1]:end[k + 1]], ys[start[k + 1]:end[k + 1]]]
+        a = pts[start[k]:end[k]]
+        b = pts[start[k + 1]:end[k + 1]]
         if len(a) < 1 or len(b) < 1:
             continue
         ta = tree(k, a)
