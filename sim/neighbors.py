@@ -35,6 +35,8 @@ __all__ = [
     "cell_order",
     "permute_rows",
     "needs_rebuild",
+    "inner_list",
+    "scatter_history",
     "wrap_positions",
     "brute_force_pairs",
     "NeighborList",
@@ -425,6 +427,72 @@ def needs_rebuild(pos, ref_pos, skin):
         if dx * dx + dy * dy + dz * dz > lim:
             return True
     return False
+
+
+@njit(cache=True)
+def inner_list(pos, radius, cutoff, margin, start, nbj, shift, hist):
+    """The order-preserving sub-list of the pairs of a half list closer than ``max(R_i + R_j, cutoff) +
+    margin`` (m), with their history.
+
+    While no particle moves more than (a little less than) ``margin / 2`` from ``pos``, every pair left
+    out neither touches nor reaches the cut-off, so a pair kernel over the sub-list adds exactly what it
+    adds over the whole list (a left-out pair adds +0.0, and the kept pairs come in the same order:
+    the same sums bit for bit).  The history of the left-out pairs is set to zero where it is not (what
+    the pair kernel does to a pair that does not touch).
+
+    Returns
+    -------
+    istart, inbj, ishift, ihist : the sub-list (CSR, as :func:`build_neighbor_list`) and a copy of its
+        history rows.
+    kmap : (M',) int64, the entry of the whole list of each sub-list entry (:func:`scatter_history`).
+    """
+    n = pos.shape[0]
+    h = hist.shape[1]
+    kmap = np.empty(nbj.shape[0], dtype=np.int64)
+    istart = np.zeros(n + 1, dtype=np.int64)
+    c = 0
+    for i in range(n):
+        for k in range(start[i], start[i + 1]):
+            j = nbj[k]
+            dx = pos[i, 0] - pos[j, 0] + shift[k, 0]
+            dy = pos[i, 1] - pos[j, 1] + shift[k, 1]
+            dz = pos[i, 2] - pos[j, 2] + shift[k, 2]
+            rc = radius[i] + radius[j]
+            if cutoff > rc:
+                rc = cutoff
+            rc += margin
+            if not dx * dx + dy * dy + dz * dz >= rc * rc:  # NaN distances are kept
+                kmap[c] = k
+                c += 1
+            else:
+                nonzero = False
+                for q in range(h):
+                    if hist[k, q] != 0.0:
+                        nonzero = True
+                if nonzero:
+                    for q in range(h):
+                        hist[k, q] = 0.0
+        istart[i + 1] = c
+    kmap = kmap[:c].copy()
+    inbj = np.empty(c, dtype=np.int64)
+    ishift = np.empty((c, 3))
+    ihist = np.empty((c, h))
+    for q in range(c):
+        k = kmap[q]
+        inbj[q] = nbj[k]
+        for d in range(3):
+            ishift[q, d] = shift[k, d]
+        for d in range(h):
+            ihist[q, d] = hist[k, d]
+    return istart, inbj, ishift, ihist, kmap
+
+
+@njit(cache=True)
+def scatter_history(hist, ihist, kmap):
+    """Write the history of a sub-list of :func:`inner_list` back into the whole list's, in place."""
+    for q in range(kmap.shape[0]):
+        for d in range(hist.shape[1]):
+            hist[kmap[q], d] = ihist[q, d]
 
 
 def brute_force_pairs(pos, radius, cutoff=0.0, skin=0.0, length=None, periodic=None):

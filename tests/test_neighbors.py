@@ -125,3 +125,51 @@ def test_history_carried_across_a_reordering_changes_sign_with_the_roles():
     shuffle = rng.permutation(50)
     p1 = cell_order(pos[shuffle], rad, 0.0, 0.01, lo, L, per, shuffle.astype(np.int64))
     np.testing.assert_array_equal(shuffle[p1], p0)
+
+
+def test_inner_list_keeps_order_and_forces_bit_for_bit():
+    """The sub-list of sim.neighbors.inner_list: exactly the pairs within max(R_i + R_j, cut-off) +
+    margin, in the whole list's order, history carried (and zeroed for the pairs left out); the pair
+    kernel with a cut-off law over it gives the whole list's forces bit for bit, also after the particles
+    moved by less than margin / 2."""
+    from sim.forces.contact import CONTACT_HOOKE, hooke_params, pair_forces
+    from sim.forces.nearfield import NF_YUKAWA, law_row, law_table
+    from sim.neighbors import inner_list, scatter_history
+
+    rng = np.random.default_rng(3)
+    n, a = 400, 1e-7
+    L = np.array([4e-6, 4e-6, 4e-6])
+    pos = rng.uniform(0, 4e-6, (n, 3))
+    rad = np.full(n, a)
+    per = np.array([1, 1, 0], dtype=np.int64)
+    cut, skin, margin = 3.6 * a, 0.5 * a, 0.2 * a
+    start, nbj, shift = build_neighbor_list(pos, rad, cut, skin, np.zeros(3), L, per)
+    hist = rng.normal(size=(len(nbj), 3)) * (rng.uniform(size=(len(nbj), 1)) < 0.2)
+    ii = np.repeat(np.arange(n), np.diff(start))
+    r = np.linalg.norm(pos[ii] - pos[nbj] + shift, axis=1)
+    want = r < np.maximum(cut, 2 * a) + margin
+    h_all = hist.copy()
+    istart, inbj, ishift, ihist, kmap = inner_list(pos, rad, cut, margin, start, nbj, shift, h_all)
+    np.testing.assert_array_equal(kmap, np.flatnonzero(want))
+    np.testing.assert_array_equal(inbj, nbj[want])
+    np.testing.assert_array_equal(istart, np.concatenate([[0], np.cumsum(np.bincount(ii[want], minlength=n))]))
+    np.testing.assert_array_equal(ihist, hist[want])
+    assert not np.any(h_all[~want]) and np.array_equal(h_all[want], hist[want])
+    assert 0 < want.sum() < len(nbj)
+    laws = law_table(law_row(NF_YUKAWA, [1e-2, 1.0 / (0.2 * a), cut]))
+    cp = hooke_params(1e-3, 1.0, mu=0.0)
+    step = rng.normal(size=(n, 3))
+    moved = pos + 0.4 * margin * step / np.linalg.norm(step, axis=1)[:, None]
+    for p in (pos, moved):
+        out = []
+        for st, nj, sh, h in ((start, nbj, shift, h_all.copy()), (istart, inbj, ishift, ihist.copy())):
+            f, t, d = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(5)
+            pair_forces(p, np.zeros((n, 3)), np.zeros((n, 3)), rad, np.ones(n), np.zeros(n), st, nj, sh, h, f, t,
+                        CONTACT_HOOKE, cp, laws, False, 1e-9, d)
+            out.append((f, d, h))
+        assert np.any(out[0][0] != 0.0)
+        np.testing.assert_array_equal(out[1][0], out[0][0])
+        np.testing.assert_array_equal(out[1][1], out[0][1])
+        back = h_all.copy()
+        scatter_history(back, out[1][2], kmap)
+        np.testing.assert_array_equal(back, out[0][2])
