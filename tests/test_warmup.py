@@ -27,3 +27,17 @@ def test_every_shipped_scene_is_cut_short_and_really_steps(tmp_path):
 def test_warmup_command_exits_0(capsys):
     assert main(["warmup", "--quiet"]) == 0
     assert capsys.readouterr().err == ""
+
+
+def test_warmup_compiles_the_gdpt_kernels():
+    # a fresh process (this one may have compiled them already): warm_gdpt finds its two particles and leaves
+    # both correlation kernels compiled (numba cache=True keeps them on disk for the next process)
+    import subprocess
+    import sys
+
+    code = ("from ptrack.commands.warmup import warm_gdpt\n"
+            "from ptrack.gdpt import ncc\n"
+            "assert not ncc._ncc_direct.signatures and not ncc._ncc_pages.signatures\n"
+            "print(warm_gdpt(), len(ncc._ncc_direct.signatures), len(ncc._ncc_pages.signatures))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out[0] == "2" and int(out[1]) >= 1 and int(out[2]) >= 1
