@@ -184,3 +184,24 @@ def test_close_pairs_both_found_and_unbiased(fwhm_apart):
     assert rmse < 0.1, rmse
     along = np.concatenate(along)
     assert abs(np.mean(along)) < 4 * np.std(along) / np.sqrt(len(along)) + 0.01, np.mean(along)
+
+
+def test_stage_times_in_the_cache_survive_a_map_refresh():
+    # locate sums its stages' wall seconds over the frames sharing a cache, across detect's refresh of the maps
+    from ptrack.image.detect import MAP_REFRESH
+
+    rng = np.random.default_rng(4)
+    xs, ys = grid_positions((96, 96), 20, rng)
+    cache = {}
+    n = 0
+    for i in range(MAP_REFRESH + 2):
+        f = gaussian_frame(xs, ys, (96, 96), 1.3, 2000.0, 20.0, 1.0, 100.0, rng)
+        n += len(locate(f, offset=100.0, frame_no=i, cache=cache))
+        if i == 0:
+            after_first = dict(cache["stage_times_s"])
+    assert n > 0
+    tm = cache["stage_times_s"]
+    assert set(tm) == {"detect", "fit", "centres"}
+    assert all(v >= 0 for v in tm.values())
+    assert tm["detect"] > after_first["detect"] and tm["fit"] > after_first["fit"]   # not reset by the refresh
+    assert cache["age"] == 2        # the maps were measured again after MAP_REFRESH frames

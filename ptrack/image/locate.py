@@ -6,6 +6,7 @@ centre of pixel (0, 0) at (0, 0).
 from __future__ import annotations
 
 import math
+import time
 
 import numba as nb
 import numpy as np
@@ -160,7 +161,10 @@ def locate(frame, img=None, sigma: float | None = None, snr: float | None = None
     cache : dict, optional
         Multi-scale path: one dict passed with every frame of a movie lets the
         frames share their noise and background maps (see
-        :func:`ptrack.image.detect.detect`).
+        :func:`ptrack.image.detect.detect`); its ``stage_times_s`` then sums the
+        wall seconds of the stages over those frames: ``detect``, ``fit``
+        (hot-pixel repair, ring tests, Gaussian fits) and ``centres`` (radial
+        centres and profile fits).
     gain, offset, read_noise
         Camera model (counts per photon, baseline counts, read noise e-).
     brightfield : bool
@@ -341,7 +345,15 @@ def _locate_multiscale(frame, snr=None, gain=1.0, offset=0.0, read_noise=0.0, br
     if raw.dtype not in (np.uint8, np.uint16, np.float32, np.float64):
         raw = raw.astype(np.float32)
     pol = None if brightfield is None else (-1 if brightfield else 1)
+    # wall seconds per stage summed over the frames that share the cache (cache["stage_times_s"]: detect,
+    # fit, centres), kept across detect's refresh of the maps (which clears the cache)
+    tm = cache.get("stage_times_s", {"detect": 0.0, "fit": 0.0, "centres": 0.0}) if cache is not None else None
+    t0 = time.perf_counter()
     det = detect(raw, scales=scales, polarity=pol, snr=snr, rate=rate, median=median, offset=offset, cache=cache)
+    t1 = time.perf_counter()
+    if tm is not None:
+        cache["stage_times_s"] = tm
+        tm["detect"] += t1 - t0
     rows, cols, scale, polarity = det["rows"], det["cols"], det["scale"], det["polarity"]
     n = len(rows)
     # background-subtracted image, particles positive (dark particles: the background minus the frame)
@@ -415,6 +427,9 @@ def _locate_multiscale(frame, snr=None, gain=1.0, offset=0.0, read_noise=0.0, br
             vx, vy = np.r_[vx, fit["var_x"][extra]], np.r_[vy, fit["var_y"][extra]]
             photons, bgp = np.r_[photons, fit["photons"][extra]], np.r_[bgp, fit["bg"][extra]]
             size, ecc, ok = np.r_[size, fit["s"][extra]], np.r_[ecc, fit["ecc"][extra]], np.r_[ok, fit["ok"][extra]]
+    t2 = time.perf_counter()
+    if tm is not None:
+        tm["fit"] += t2 - t1
     # images a Gaussian does not describe, fitted with a free radial profile about a free centre
     # (radial.profile_centres) over the image's extent measured from the data: rings, and blobs that are
     # not diffraction-limited spots (Gaussian width >= LARGE_IMAGE px: defocused) or that sit in a ring of
@@ -449,6 +464,8 @@ def _locate_multiscale(frame, snr=None, gain=1.0, offset=0.0, read_noise=0.0, br
         for a, b_ in ((x, "x"), (y, "y"), (vx, "var_x"), (vy, "var_y")):
             a[q] = np.where(use, pf[b_], a[q])
         ring[q] |= use
+    if tm is not None:
+        tm["centres"] += time.perf_counter() - t2
     mass = photons * (gain if poisson else 1.0)
     keep = ok & np.isfinite(x) & np.isfinite(y) & (np.nan_to_num(photons, nan=np.inf) > min_photons)
     k = np.nonzero(keep)[0]
