@@ -75,8 +75,9 @@ DRAG_NONE, DRAG_STOKES, DRAG_SEED = 0, 1, 2
 VERLET, PHI_SCHEME, OVERDAMPED = 0, 1, 2  # integrator codes (STEPPERS: the kernel of each)
 
 # the ``guards`` array of the kernels: blow-up limits, the fixed-point tolerance and the overdamped
-# stepper's options (sticking substrate, largest drift step in m, time at which to stop in s)
-G_MAX_OVERLAP, G_V_MAX, G_HAS_BOTTOM, G_TOL, G_STICK, G_MAX_STEP, G_T_STOP = 0, 1, 2, 3, 4, 5, 6
+# stepper's options (sticking substrate, largest drift step in m, time at which to stop in s, and the clock's
+# value at the start of a call: the overdamped stepper counts absolute time from it, the fixed-step ones from 0)
+G_MAX_OVERLAP, G_V_MAX, G_HAS_BOTTOM, G_TOL, G_STICK, G_MAX_STEP, G_T_STOP, G_T_START = 0, 1, 2, 3, 4, 5, 6, 7
 # the ``chunk_peaks`` array: largest values over a run() call
 P_OVERLAP, P_W2, P_DAMP = 0, 1, 2
 
@@ -477,7 +478,9 @@ def _run_overdamped(nsteps, dt, step0, phi, n_iter,
     at z = R; the chunk ends early once the time reaches ``guards[G_T_STOP]``."""
     n = pos.shape[0]
     nbuild = 0
-    t_done = 0.0
+    # absolute time, one step at a time from the state's own clock: the same bits however a run is split
+    # into calls (adding a per-call sum to the clock rounded differently for each split)
+    t_done = guards[G_T_START]
     bd_kT = extp[5]
     # forces without drag and Brownian force (see _forces)
     extp = extp.copy()
@@ -777,7 +780,7 @@ class DEMSystem:
         bottom = self._has_bottom() or substrate is not None
         # G_* indices
         self.guards = f64([max_overlap, v_max, 1.0 if bottom else 0.0, tol, 1.0 if substrate == "stick" else 0.0,
-                           max_step, 0.0])
+                           max_step, 0.0, 0.0])
         self.frozen = np.zeros(n)  # 1: stuck on the substrate (overdamped stepper), no longer moved
         self.integrator = int(integrator)
         self.phi = float(phi)
@@ -886,10 +889,12 @@ class DEMSystem:
         t0 = self.t
         done_here = 0
         while left > 0:
+            od = self.integrator == OVERDAMPED
+            self.guards[G_T_START] = self.t if od else 0.0
             if until is not None:
                 if self.t >= until:
                     break
-                self.guards[G_T_STOP] = until - self.t
+                self.guards[G_T_STOP] = until if od else until - self.t
             k = left if chunker is None else min(left, chunker.size)
             if chunker is not None:
                 chunker.start()
@@ -909,8 +914,8 @@ class DEMSystem:
             self.step += done
             done_here += done
             # fixed steps: t = t0 + (steps of this call) dt, the rounding of one kernel call whatever the
-            # split; the overdamped stepper's steps vary in length
-            self.t = self.t + t_done if self.integrator == OVERDAMPED else t0 + done_here * self.dt
+            # split; the overdamped stepper's steps vary in length, and it returns its absolute clock
+            self.t = t_done if od else t0 + done_here * self.dt
             self.n_builds += nb
             self.status = status
             self.fail_particle = int(self.particle_order[part]) if part >= 0 else part
