@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
+from numba import njit
 
 from .errors import UserError, check_positive, require_file
 from .gdpt.ncc import Templates, ncc, ncc_pages
@@ -443,20 +444,40 @@ def _subpixel_peaks(maps):
     the x part of the correction was noise; corrected: isolated particles
     0.53 -> 0.32 % of the depth at 20000 photons, 1.11 -> 0.97 % at 4000.)
     """
-    K, ny, nx = maps.shape
-    flat = maps.reshape(K, -1)
-    idx = flat.argmax(1)
-    i, j = np.divmod(idx, nx)
-    kk = np.arange(K)
-    c = flat[kk, idx]
-    out = c.astype(np.float64)
-    axes = ((maps[kk, np.maximum(i - 1, 0), j], maps[kk, np.minimum(i + 1, ny - 1), j], (i > 0) & (i < ny - 1)),
-            (maps[kk, i, np.maximum(j - 1, 0)], maps[kk, i, np.minimum(j + 1, nx - 1)], (j > 0) & (j < nx - 1)))
-    for y0, y2, inner in axes:
-        curv = (y0 + y2 - 2 * c).astype(np.float64)
-        ok = inner & (curv < 0)
-        out[ok] -= (y2[ok] - y0[ok]).astype(np.float64) ** 2 / (8 * curv[ok])
+    maps = np.asarray(maps, np.float32)
+    out = np.empty(maps.shape[0])
+    _subpixel_peaks_kernel(maps, out)
     return out
+
+
+@njit(cache=True)
+def _subpixel_peaks_kernel(maps, out):
+    # one loop over the maps instead of ~20 numpy calls on arrays of a few pages (~180 us per call); the same
+    # float32 differences and float64 correction as the array code it replaces (bit-identical)
+    K, ny, nx = maps.shape
+    two = np.float32(2.0)
+    for k in range(K):
+        best = 0
+        for q in range(1, ny * nx):
+            if maps[k, q // nx, q % nx] > maps[k, best // nx, best % nx]:
+                best = q
+        i, j = best // nx, best % nx
+        c = maps[k, i, j]
+        o = np.float64(c)
+        for ax in range(2):
+            if ax == 0:
+                if not (0 < i < ny - 1):
+                    continue
+                y0, y2 = maps[k, i - 1, j], maps[k, i + 1, j]
+            else:
+                if not (0 < j < nx - 1):
+                    continue
+                y0, y2 = maps[k, i, j - 1], maps[k, i, j + 1]
+            curv = np.float64(y0 + y2 - two * c)
+            if curv < 0:
+                d = np.float64(y2 - y0)
+                o -= d ** 2 / (8 * curv)
+        out[k] = o
 
 
 def _quadratic_peak(z, c, k, n_points=None, drop: float = 0.15):
