@@ -161,6 +161,8 @@ def locate_movie(movie, brightfield: bool | None = None, diameter: float | None 
         # the typical particle image, for the summary (each particle was localised at its own size)
         info["sigma_px"] = float(np.median(feats["size"]))
         info["diameter_px"] = sigma_to_diameter(info["sigma_px"])
+    # the multi-scale locator's own split of "locate" (detect, fit, centres), summed over frames
+    times.update({"locate." + k: v for k, v in maps.get("stage_times_s", {}).items()})
     info["stage_times_s"] = {k: round(v, 4) for k, v in times.items()}
     return feats, info
 

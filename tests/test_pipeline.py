@@ -73,6 +73,10 @@ def test_track_movie_table_and_links(movie, tmp_path):
     np.testing.assert_allclose(t["x"], t["x_px"] * movie["px"])
     assert np.isnan(t["z"]).all() and (t["sigma_x"] > 0).all()
     assert summary["n_frames"] == 60 and summary["n_tracks"] == t["particle"].nunique()
+    # per-stage times, with the multi-scale locator's own split of "locate" (its parts cannot exceed it)
+    st = summary["stage_times_s"]
+    parts = [st[k] for k in ("locate.detect", "locate.fit", "locate.centres")]
+    assert all(v >= 0 for v in parts) and 0 < sum(parts) <= st["locate"] * 1.01 + 1e-3
     # every localisation sits on a true particle, and links follow one true particle (ptrack.motion.match_truth:
     # the one truth-matching rule)
     truth = movie["truth"]
