@@ -709,7 +709,7 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
         else:
             for k in first:
                 maps[k] = corr(k)
-        np.copyto(maps, -1.0, where=np.isnan(maps))    # a constant window (padding) gives NaN
+            np.copyto(maps, -1.0, where=np.isnan(maps))    # a constant window (padding) gives NaN (OpenCV)
         best = int(first[np.argmax(maps[first].reshape(len(first), -1).max(1))])
         lo, hi = max(0, best - coarse - 1), min(K, best + coarse + 2)
         i0, j0 = np.unravel_index(int(np.argmax(maps[best])), (n, n))
@@ -722,8 +722,12 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
         else:
             for k in ks:
                 maps[k] = corr_near(k, i0, j0, fine_margin) if near else corr(k)
-        np.copyto(maps, -1.0, where=np.isnan(maps))
-        done = np.union1d(first, np.arange(lo, hi))
+            np.copyto(maps, -1.0, where=np.isnan(maps))
+        # the pages correlated (sorted; np.union1d costs ~100 us a match)
+        sel = np.zeros(K, bool)
+        sel[first] = True
+        sel[lo:hi] = True
+        done = np.flatnonzero(sel)
     else:
         for k in range(K):
             maps[k] = corr(k)
@@ -756,7 +760,7 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
                     o = (t.shape[0] - Tc) // 2
                     tc = t[o:o + Tc, o:o + Tc] if o else t
                     maps[q] = corr_near(q, i0, j0, min(2, m), tc) if m > 2 else corr(q, tc)
-            np.copyto(maps, -1.0, where=np.isnan(maps))
+                np.copyto(maps, -1.0, where=np.isnan(maps))
             pk = _subpixel_peaks(maps[lo2:hi2])
             kk = int(np.argmax(pk))
             k, cm = lo2 + kk, float(pk[kk])

@@ -137,6 +137,7 @@ def ncc_pages(img, ri, ci, m, tmpl: Templates, pages, crop=0, rows=None, cols=No
     Returns
     -------
     (len(pages), 2 m + 1, 2 m + 1) float32 array
+        Never NaN (a constant window or template gives -1).
     """
     n = 2 * m + 1
     a0, a1 = rows if rows is not None else (0, n)
