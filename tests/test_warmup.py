@@ -41,3 +41,12 @@ def test_warmup_compiles_the_gdpt_kernels():
             "print(warm_gdpt(), len(ncc._ncc_direct.signatures), len(ncc._ncc_pages.signatures))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
     assert out[0] == "2" and int(out[1]) >= 1 and int(out[2]) >= 1
+
+
+def test_warmup_links_with_the_numba_linker():
+    # two points moving < 1 px between two frames: two trajectories, and the linker kernel compiled
+    from ptrack import linknb
+    from ptrack.commands.warmup import warm_link
+
+    assert warm_link() == 2
+    assert linknb._link_all.signatures

@@ -8,7 +8,9 @@ that each integrator, contact law and wall kernel a shipped scene uses is
 compiled once, at install time (``make venv`` runs it) rather than inside a
 user's first simulation or in every new dask worker. It also matches a tiny
 synthetic GDPT frame (:func:`warm_gdpt`), which compiles the correlation
-kernels of ``ptrack.gdpt.ncc`` that every 3D (``--calib``) run calls. Nothing
+kernels of ``ptrack.gdpt.ncc`` that every 3D (``--calib``) run calls, and links
+two tiny frames (:func:`warm_link`: the numba linker of ``ptrack.linknb``,
+~20 s to compile, which every ``ptrack track`` calls). Nothing
 it writes is kept (the runs go to a temporary folder). Running it again with
 a warm cache takes a few seconds.
 
@@ -83,6 +85,23 @@ def warm_gdpt() -> int:
     return len(locate_frame_3d(frame([(30.3, 31.6, -0.7), (66.2, 63.9, 1.1)]), cal))
 
 
+def warm_link() -> int:
+    """Link two frames of two points by :func:`ptrack.linknb.link_ids` (compiles or loads its kernels).
+
+    Returns
+    -------
+    int
+        Trajectories found (2 when the linker works).
+    """
+    import numpy as np
+
+    from ..linknb import link_ids
+
+    pos = np.array([[10.0, 10.0], [30.0, 30.0], [10.5, 10.2], [29.6, 30.3]])
+    ids = link_ids(np.array([0, 0, 1, 1]), pos, 2.0, memory=1, adaptive_stop=0.3, adaptive_step=0.8)
+    return len(np.unique(ids))
+
+
 def run(args) -> int:
     from sim.run import run_scene
 
@@ -99,6 +118,10 @@ def run(args) -> int:
     warm_gdpt()
     if not args.quiet:
         print(f"warmup: GDPT correlation kernels compiled / loaded in {time.perf_counter() - t1:.1f} s", file=sys.stderr)
+    t1 = time.perf_counter()
+    warm_link()
+    if not args.quiet:
+        print(f"warmup: linker compiled / loaded in {time.perf_counter() - t1:.1f} s", file=sys.stderr)
     if not args.quiet:
         print(f"warmup: numba cache ready in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     return 0
