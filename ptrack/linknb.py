@@ -191,25 +191,19 @@ def _solve(srcs, start, ncand, cdst, cdist, rng, dlocal, nd_sub, assign):
     best_sum = np.inf
     j = 0
     while j >= 0:
-        if k[j] >= nc[j]:
-            # level exhausted: up
-            j -= 1
-            if j >= 0:
-                if cur[j] >= 0:
-                    taken[dlocal[cur[j]]] = False
-                    cur[j] = -1
-                k[j] += 1
-            continue
-        i = k[j]
-        if i < nc[j] - 1:
-            dd = cdist[start[s[j]] + i]
-            dest = cdst[start[s[j]] + i]
-            t = sums[j] + dd * dd
-        else:
-            dest = -1
-            t = sums[j] + null2
-        if t > best_sum:
+        up = k[j] >= nc[j]          # level exhausted
+        if not up:
+            i = k[j]
+            if i < nc[j] - 1:
+                dd = cdist[start[s[j]] + i]
+                dest = cdst[start[s[j]] + i]
+                t = sums[j] + dd * dd
+            else:
+                dest = -1
+                t = sums[j] + null2
             # the candidates are sorted (the null link last): nothing further on this level is better
+            up = t > best_sum
+        if up:
             j -= 1
             if j >= 0:
                 if cur[j] >= 0:
