@@ -359,14 +359,9 @@ def _locate_multiscale(frame, snr=None, gain=1.0, offset=0.0, read_noise=0.0, br
     # background-subtracted image, particles positive (dark particles: the background minus the frame)
     bgmap, nzmap = det["background_map"], det["noise_map"]
     sub = np.subtract(raw, bgmap, dtype=np.float32) if polarity > 0 else np.subtract(bgmap, raw, dtype=np.float32)
-    # the frame's noise (counts): the median of its noise map, measured once per map (frames that share the
-    # maps through the cache share it; a full-frame median costs as much as the fits of a sparse frame)
-    if cache is not None and cache.get("locate_noise", (None,))[0] is nzmap:
-        noise = cache["locate_noise"][1]
-    else:
-        noise = float(np.median(nzmap))
-        if cache is not None:
-            cache["locate_noise"] = (nzmap, noise)
+    # the frame's noise (counts): the median of its noise map, measured by detect once per map (frames that
+    # share the maps through the cache share it; a full-frame median costs as much as the fits of a sparse frame)
+    noise = det["noise_map_median"]
     if polarity > 0 and median and n:
         # isolated hot pixels would pull the likelihood fit of the raw counts: replaced by their 3x3 median
         # (the rule of repair_hot_pixels, 8 noise sigmas, tested only inside the fit windows)
