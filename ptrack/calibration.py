@@ -40,6 +40,14 @@ _WIDE_MASK = 1 / 8         # second candidate-mask smoothing, x the largest temp
 _REFINE_SCALE = 1 / 1.2    # refine only particles whose 95 % light discs overlap (see build_calibration)
 _PAIR_SEEDS = True         # _split also tries parts seeded at the window's best correlation maxima
 _PAIR_SEP = 8.0            # px between those seeds (5: recall 0.944, overlapping-image z RMSE 2.15 %)
+_JOINT_FIT = False         # _split places each part by a joint least-squares fit of all parts (_joint_place), for
+                           # the attempts its plain sweeps leave unaccepted (_JOINT_RESCUE): bench_pipeline B
+                           # diffusion3d recall 0.950 -> 0.960, precision 0.966 -> 0.968, but z RMSE of overlapping
+                           # images 2.11 -> 2.86 % (pairs < 5 px apart at opposite heights, now found, both at one
+                           # height) and 2.1x the CPU time (0.114 -> 0.244 s/frame); at every sweep end (not only
+                           # rescue): 0.963 / 0.974 / 2.86 %, 2.9x: off
+_JOINT_SWEEPS = 2          # sweeps of joint placement at the end of each _split attempt
+_JOINT_RESCUE = True       # joint placement only for attempts that the plain sweeps leave unaccepted
 _NEIGHBOUR_WEIGHT = None   # re-matches in locate_3d's refine passes weight each pixel by 1 / (1 + (b N / noise)^2),
                            # N the sum of |model| of the other particles there (see _weighted_ncc); None: off.
                            # b = 0.5: bench_pipeline B diffusion3d recall 0.937 -> 0.948, precision 0.960 -> 0.965,
@@ -628,7 +636,8 @@ def _outside_fraction(t, r0, r1, c0, c1) -> float:
 
 
 def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm_drop, coarse: int = 0,
-               masked: bool = False, fine_margin: int | None = None, common: bool | None = None, weight=None):
+               masked: bool = False, fine_margin: int | None = None, common: bool | None = None, weight=None,
+               pages=None):
     """Best template, z, sub-pixel x, y and Cm of the particle image near frame pixel (r, c).
 
     ``masked``: for an image cut by the frame edge, correlate only the
@@ -641,6 +650,9 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
     summed |model| of the neighbours): the correlations are weighted by
     1 / (1 + (b N / noise)^2) (:func:`_weighted_ncc`).
 
+    ``pages``: (lo, hi), match only against pages lo..hi-1 (a seed of
+    :func:`_split` on one side of a merged match's height).
+
     Returns a dict with ``x_px``, ``y_px``, ``z``, ``cm``, ``page`` and the
     placement of the best template in ``padded`` (``top``, ``left`` integer
     corner, ``di``, ``dj`` sub-pixel shift).
@@ -648,6 +660,7 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
     import cv2
 
     K = len(tmpl)
+    plo, phi = (0, K) if pages is None else (max(int(pages[0]), 0), min(int(pages[1]), K))
     n = 2 * m + 1
     if common is None:
         common = _COMMON_WINDOW
@@ -699,11 +712,11 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
     maps = np.full((K, n, n), -1.0, np.float32)
     # the plain correlations of many pages in one call (not for cut images or weighted matching, page by page)
     batch = weight is None and not masked and isinstance(tmpl, Templates)
-    if coarse and K > 4 * coarse:
+    if coarse and K > 4 * coarse and phi - plo > 2 * coarse:
         # coarse to fine: every ``coarse``-th page first, then every page within a coarse step + 1 of the best
         # (templates interpolated between recorded pages: at the +-2 shifts around the coarse stage's best only,
         # unless the image is cut by the frame edge and needs the masked correlation)
-        first = np.arange(0, K, coarse)
+        first = np.arange(-(-plo // coarse) * coarse, phi, coarse)
         if batch:
             maps[first] = ncc_pages(padded, ri, ci, m, tmpl, first)
         else:
@@ -711,7 +724,7 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
                 maps[k] = corr(k)
             np.copyto(maps, -1.0, where=np.isnan(maps))    # a constant window (padding) gives NaN (OpenCV)
         best = int(first[np.argmax(maps[first].reshape(len(first), -1).max(1))])
-        lo, hi = max(0, best - coarse - 1), min(K, best + coarse + 2)
+        lo, hi = max(plo, best - coarse - 1), min(phi, best + coarse + 2)
         i0, j0 = np.unravel_index(int(np.argmax(maps[best])), (n, n))
         near = fine_margin is not None and not masked and m > fine_margin
         ks = [k for k in range(lo, hi) if k % coarse]
@@ -729,10 +742,10 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
         sel[lo:hi] = True
         done = np.flatnonzero(sel)
     else:
-        for k in range(K):
+        for k in range(plo, phi):
             maps[k] = corr(k)
         np.copyto(maps, -1.0, where=np.isnan(maps))    # a constant window (padding) gives NaN
-        done = np.arange(K)
+        done = np.arange(plo, phi)
     peak = np.full(K, -1.0)
     peak[done] = _subpixel_peaks(maps[done])
     k = int(np.argmax(peak))
@@ -744,7 +757,7 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
         # light in a crowded frame, correlates better and pulls z towards focus (diffusion3d, images that
         # overlap another: z RMSE 3.25 -> 2.31 % of the depth; moving the window along while the best page lands
         # on its edge: 2.91 %)
-        lo2, hi2 = max(0, k - _COMMON_PAGES), min(K, k + _COMMON_PAGES + 1)
+        lo2, hi2 = max(plo, k - _COMMON_PAGES), min(phi, k + _COMMON_PAGES + 1)
         sizes = [tmpl[q].shape[0] for q in range(lo2, hi2)]
         Tc = min(sizes)
         if max(sizes) > Tc:
@@ -1084,6 +1097,119 @@ def _window_rss(res, slices):
     return float((w[res.inside[r0:r1, c0:c1]] ** 2).sum())
 
 
+def _joint_place(res, pad, tmpl, calib: Calibration, parts, pm, j: int, m: int, coarse: int):
+    """Where part ``j`` of a split sits in a joint least-squares fit of all the parts' templates.
+
+    The window is fitted as the sum of every part's template with free
+    amplitudes (linear least squares; the other parts kept at their page and
+    sub-pixel position, part ``j`` tried at every page, coarse to fine, and
+    every integer shift within ``m`` px of its centre). Re-matching a part by
+    its normalised correlation on the residual, with the others' models
+    subtracted at their own (single-image) amplitudes, can stay at a
+    compromise: a neighbour's model that took some of this part's light
+    leaves it too little to move to (diffusion3d frame 70: two images 2.8 px
+    apart at z = -1.65 and +1.0 um, the fainter one held 3.5 px off). With
+    the amplitudes fitted jointly the light is shared as the templates say.
+
+    Parameters
+    ----------
+    res : _Residual
+        The residual with part ``j``'s model added back, the others' (``pm``) subtracted.
+    parts, pm : lists
+        The parts (hits) and their (slices, model) as subtracted.
+    j : int
+    m : int
+        Shift range (px).
+    coarse : int
+        Page step of the first stage (0: every page).
+
+    Returns
+    -------
+    (row, col, page) or None
+        The centre (frame px, integer shift from the current one) and page of
+        the best fit with positive amplitudes; None if no window fits (edge).
+    """
+    import cv2
+
+    Hp, Wp = res.img.shape
+    P = parts[j]
+    yc = P["y_px"] + pad
+    xc = P["x_px"] + pad
+    K = len(tmpl)
+    corner = np.rint(np.column_stack([yc - calib.centers[:, 0], xc - calib.centers[:, 1]])).astype(int) - m
+    sides = np.array([t.shape[0] for t in tmpl]) + 2 * m
+    others = [i for i in range(len(parts)) if i != j]
+    rows = [corner[:, 0].min(), (corner[:, 0] + sides).max()]
+    cols = [corner[:, 1].min(), (corner[:, 1] + sides).max()]
+    for i in others:
+        rows = [min(rows[0], pm[i][0][0].start), max(rows[1], pm[i][0][0].stop)]
+        cols = [min(cols[0], pm[i][0][1].start), max(cols[1], pm[i][0][1].stop)]
+    R0, R1 = max(rows[0], 0), min(rows[1], Hp)
+    C0, C1 = max(cols[0], 0), min(cols[1], Wp)
+    ins = res.inside[R0:R1, C0:C1]
+    # the data the parts explain: the residual with the others' models put back; the others as unit templates
+    W = res.img[R0:R1, C0:C1].copy()
+    O = []
+    for i in others:
+        (rs, cs), mod = pm[i]
+        W[rs.start - R0:rs.stop - R0, cs.start - C0:cs.stop - C0] += mod
+        h = parts[i]
+        t = _shifted(tmpl[h["page"]], h["di"], h["dj"])
+        o = np.zeros(W.shape, np.float32)
+        o[rs.start - R0:rs.stop - R0, cs.start - C0:cs.stop - C0] = t
+        O.append(np.where(ins, o, 0.0).astype(np.float32))
+    Mk = ins.astype(np.float32)
+    G = np.array([[float((a * b).sum()) for b in O] for a in O])
+    bo = np.array([float((a * W).sum()) for a in O])
+    try:
+        Gi = np.linalg.inv(G)
+    except np.linalg.LinAlgError:
+        return None
+    u = Gi @ bo                                 # the others' amplitudes without part j
+
+    def score(k):
+        t = tmpl[k]
+        a0, b0 = corner[k, 0] - R0, corner[k, 1] - C0
+        S = sides[k]
+        if a0 < 0 or b0 < 0 or a0 + S > W.shape[0] or b0 + S > W.shape[1]:
+            return None
+        sub = (slice(a0, a0 + S), slice(b0, b0 + S))
+        bj = cv2.matchTemplate(W[sub], t, cv2.TM_CCORR).astype(np.float64)
+        tt = cv2.matchTemplate(Mk[sub], t * t, cv2.TM_CCORR).astype(np.float64)
+        c = np.stack([cv2.matchTemplate(o[sub], t, cv2.TM_CCORR).astype(np.float64) for o in O], -1)
+        # Schur complement of the others' Gram matrix: part j's amplitude and its reduction of the RSS
+        num = bj - c @ u
+        den = tt - np.einsum("...i,ij,...j->...", c, Gi, c)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            aj = np.where(den > 0, num / den, -1.0)
+            ao = u - aj[..., None] * (c @ Gi)
+            q = np.where((aj > 0) & (ao > 0).all(-1), num * num / den, -np.inf)
+        return q
+
+    step = max(int(coarse or 1), 1)
+    best = (-np.inf, None, None)
+
+    def run(ks):
+        nonlocal best
+        for k in ks:
+            q = score(k)
+            if q is None:
+                continue
+            i = int(np.argmax(q))
+            if q.flat[i] > best[0]:
+                best = (float(q.flat[i]), int(k), divmod(i, q.shape[1]))
+
+    run(range(0, K, step))
+    if best[1] is None:
+        return None
+    if step > 1:
+        k0 = best[1]
+        run([k for k in range(max(0, k0 - step + 1), min(K, k0 + step)) if k % step])
+    k = best[1]
+    si, sj = best[2]
+    return (corner[k, 0] + si + calib.centers[k, 0] - pad, corner[k, 1] + sj + calib.centers[k, 1] - pad, k)
+
+
 def _split(res, pad, tmpl, calib, hit, model, cap, n_parts, m, z_points, cm_drop, coarse, n_templates, gain,
            part_ok):
     """Fit one (over-bright or badly explained) match as ``n_parts`` particles of capped brightness.
@@ -1101,6 +1227,7 @@ def _split(res, pad, tmpl, calib, hit, model, cap, n_parts, m, z_points, cm_drop
     residual is kept. If neither is accepted the residual is left as it was
     and (None, None) is returned.
     """
+    joint = _JOINT_FIT and not calib.info.get("signed", False)
     res.add(*model)
     single = dict(hit)
     sl_s, mod_s = res.model(single)
@@ -1120,19 +1247,58 @@ def _split(res, pad, tmpl, calib, hit, model, cap, n_parts, m, z_points, cm_drop
             pm.append(res.model(hj, cap(hj)))
             res.subtract(*pm[-1])
             parts.append(hj)
-        for _ in range(3):
+        sweep(parts, pm)
+        bad = [j for j, p_ in enumerate(parts) if not part_ok(p_)]
+        if bad and len(parts) - len(bad) >= 2:
+            # a part that fails its checks (a third part grown on the leftovers of two images): dropped, its light
+            # given back, and the others swept again (diffusion3d: pairs of a 3-part attempt were lost with it)
+            for j in bad:
+                res.add(*pm[j])
+            parts = [p_ for j, p_ in enumerate(parts) if j not in bad]
+            pm = [p_ for j, p_ in enumerate(pm) if j not in bad]
+            sweep(parts, pm)
+        if joint and len(parts) >= 2 and not (accepted(parts, pm) and _JOINT_RESCUE):
+            sweep(parts, pm, True, _JOINT_SWEEPS)
+        return parts, pm
+
+    def accepted(parts, pm):
+        """Whether the parts (models subtracted) pass the split's tests against the single match."""
+        union = [sl_s] + [p[0] for p in pm]
+        rss_n = _window_rss(res, union)
+        for p in pm:
+            res.add(*p)
+        res.subtract(sl_s, mod_s)
+        rss_1 = _window_rss(res, union)
+        res.add(sl_s, mod_s)
+        for p in pm:
+            res.subtract(*p)
+        close = any(math.hypot(a["x_px"] - b["x_px"], a["y_px"] - b["y_px"]) < 1.0
+                    for i, a in enumerate(parts) for b in parts[i + 1:])
+        return (len(parts) >= 2 and not close and rss_1 - rss_n >= gain * res.noise ** 2
+                and all(map(part_ok, parts)))
+
+    def sweep(parts, pm, by_joint=False, n_sweeps=3):
+        """Each part re-matched with the others subtracted (at most ``n_sweeps`` sweeps; in place); ``by_joint``:
+        each matched (+-1 px) where :func:`_joint_place` puts it."""
+        for _ in range(n_sweeps):
             same = True
             for j in range(len(parts)):
                 res.add(*pm[j])
-                hj = _match_one(res.img, pad, parts[j]["y_px"], parts[j]["x_px"], tmpl, calib, m, z_points,
-                                cm_drop, coarse)
+                y, x, mj, pg = parts[j]["y_px"], parts[j]["x_px"], m, None
+                if by_joint:
+                    jp = _joint_place(res, pad, tmpl, calib, parts, pm, j, m, coarse)
+                    if jp is not None:
+                        # matched where the joint fit puts it: +-1 px, pages within a coarse step + 1 of its page
+                        y, x, mj = jp[0], jp[1], 1
+                        g = max(int(coarse or 0), 2) + 1
+                        pg = (jp[2] - g, jp[2] + g + 1)
+                hj = _match_one(res.img, pad, y, x, tmpl, calib, mj, z_points, cm_drop, coarse, pages=pg)
                 pm[j] = res.model(hj, cap(hj))
                 res.subtract(*pm[j])
                 same &= all(hj[key] == parts[j][key] for key in ("page", "top", "left", "di", "dj"))
                 parts[j] = hj
             if same:
                 break       # a sweep that changed no part: the next one would see the same residual
-        return parts, pm
 
     seeds = [[dict(hit)], None]
     # not in brightfield: a defocused ring correlates with itself at offsets of its radius, so the window's side
