@@ -86,16 +86,37 @@ def bandpass(work, s: float):
         cv2.GaussianBlur(work, (0, 0), _SURROUND * s, borderType=cv2.BORDER_REFLECT)
 
 
-def _blur_ladder(work, sigmas):
+def _blur_ladder(work, sigmas, pool=None):
     """G(s) * work for increasing ``sigmas``, each from the previous one (cheaper kernels); blurs wider
-    than 3 px are done on a 2x area-reduced copy and interpolated back (their content is smooth)."""
+    than 3 px are done on a 2x area-reduced copy and interpolated back (their content is smooth).
+
+    ``pool``: a dict (a movie's cache) whose arrays, one per output, the blurs are written into, frame after
+    frame (the same values; fresh full-size arrays every frame cost the kernel's page faults, ~1 ms per
+    640 x 424 frame). The outputs are then overwritten by the next call with that pool."""
     import cv2
 
     H, W = work.shape
+    bufs = None
+    if pool is not None:
+        key = (H, W, tuple(sigmas))
+        if pool.get("key") != key:
+            pool.clear()
+            pool["key"] = key
+            pool["bufs"] = [[None, None] for _ in sigmas]
+        bufs = pool["bufs"]
+
+    def into(i, j, fn, *args, **kw):
+        # fn(*args, dst=<array i, j of the pool>, **kw), the array kept for the next frame (cv2 fills it)
+        if bufs is None:
+            return fn(*args, **kw)
+        out = fn(*args, dst=bufs[i][j], **kw) if bufs[i][j] is not None else fn(*args, **kw)
+        bufs[i][j] = out
+        return out
+
     out = []
     prev, prev_s = work, 0.0
     half = None
-    for s in sigmas:
+    for i, s in enumerate(sigmas):
         if s > 3.0 and min(H, W) >= 32:
             if half is None:
                 half = cv2.resize(prev, (W // 2, H // 2), interpolation=cv2.INTER_AREA)
@@ -103,10 +124,10 @@ def _blur_ladder(work, sigmas):
             ds = math.sqrt(max(s * s - half_s * half_s, 0.01)) / 2.0
             half = cv2.GaussianBlur(half, (0, 0), ds, borderType=cv2.BORDER_REFLECT)
             half_s = s
-            out.append(cv2.resize(half, (W, H), interpolation=cv2.INTER_LINEAR))
+            out.append(into(i, 0, cv2.resize, half, (W, H), interpolation=cv2.INTER_LINEAR))
             continue
         ds = math.sqrt(max(s * s - prev_s * prev_s, 0.01))
-        prev = cv2.GaussianBlur(prev, (0, 0), ds, borderType=cv2.BORDER_REFLECT)
+        prev = into(i, 1, cv2.GaussianBlur, prev, (0, 0), ds, borderType=cv2.BORDER_REFLECT)
         prev_s = s
         out.append(prev)
     return out
@@ -567,7 +588,9 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
             cv2.medianBlur(work, 3)
     H, W = work.shape
     ladder = sorted(set(scales) | {_SURROUND * x for x in scales})
-    blurs = dict(zip(ladder, _blur_ladder(work, ladder)))
+    # (with a cache, into the arrays of the previous frame: nothing keeps the blurs beyond this call)
+    pool = cache.setdefault("blur_pool", {}) if cache is not None else None
+    blurs = dict(zip(ladder, _blur_ladder(work, ladder, pool)))
     # the noise and background maps describe the camera and the illumination, which a movie keeps from
     # frame to frame: with a cache they are measured on one frame and reused for the next ones (see
     # MAP_REFRESH), unless the frame's background level has moved
@@ -601,7 +624,7 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         rn_median = float(np.median(rn))
         if cache is not None:
             cache.clear()
-            cache.update(key=key, age=0, level=level, level_noise=1.25 * rn_median / math.sqrt(work[::8, ::8].size),
+            cache.update(blur_pool=pool, key=key, age=0, level=level, level_noise=1.25 * rn_median / math.sqrt(work[::8, ::8].size),
                          invs=tuple(invs), noise0=noise0, rb=rb, rn=rn, rn_median=rn_median)
     else:
         invs, noise0, rb, rn, rn_median = c["invs"], c["noise0"], c["rb"], c["rn"], c["rn_median"]
