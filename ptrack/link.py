@@ -100,45 +100,23 @@ def _robust_step(d):
 
 def _nn_steps(frames, x, y, max_pairs: int = 20000):
     """Per-axis steps (px) of mutual nearest neighbours between consecutive frames: a first look at the
-    step distribution without a search range (no link); empty when there are too few."""
-    from scipy.spatial import cKDTree
+    step distribution without a search range (no link); empty when there are too few.
+
+    The pairs come from :func:`ptrack.linknb.nn_steps` (numba, exact nearest neighbours; two cKDTree queries
+    per pair of frames cost ~0.1 ms each, mostly call overhead, more than the rest of a sparse frame's link).
+    """
+    from .linknb import nn_steps
 
     order = np.argsort(frames, kind="stable")
     fs = frames[order]
-    # one (n, 2) array, each frame a slice of it (np.c_ per frame cost more than the trees)
-    pts = np.column_stack((x[order], y[order]))
+    pts = np.column_stack((x[order], y[order])).astype(np.float64)
     ufr, start = np.unique(fs, return_index=True)
     end = np.r_[start[1:], len(fs)]
-    dx, dy = [], []
-    n = 0
-    trees = {}
-
-    def tree(k, pts):
-        # each frame's tree serves two pairs (as the later frame of one, the earlier of the next)
-        if k not in trees:
-            trees.clear()
-            trees[k] = cKDTree(pts, balanced_tree=False, compact_nodes=False)
-        return trees[k]
-
-    for k in range(len(ufr) - 1):
-        if ufr[k + 1] != ufr[k] + 1:
-            continue
-        a = pts[start[k]:end[k]]
-        b = pts[start[k + 1]:end[k + 1]]
-        if len(a) < 1 or len(b) < 1:
-            continue
-        ta = tree(k, a)
-        _, ib = ta.query(b)
-        _, ia = tree(k + 1, b).query(a)
-        mutual = ib[ia] == np.arange(len(a))
-        dx.append(b[ia[mutual], 0] - a[mutual, 0])
-        dy.append(b[ia[mutual], 1] - a[mutual, 1])
-        n += int(mutual.sum())
-        if n >= max_pairs:
-            break
-    if n < 10:
+    follows = ufr[1:] == ufr[:-1] + 1
+    dx, dy = nn_steps(pts, start.astype(np.int64), end.astype(np.int64), follows, int(max_pairs))
+    if len(dx) < 10:
         return np.zeros(0), np.zeros(0)
-    return np.concatenate(dx), np.concatenate(dy)
+    return dx, dy
 
 
 #: Frames (from the start) on which the search range is estimated before the whole movie is linked once

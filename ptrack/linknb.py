@@ -60,6 +60,105 @@ def _find(parent, i):
 
 
 @nb.njit(cache=True)
+def _nearest(src, order, xs, dst, out):
+    """Index of the nearest point of ``src`` (n, 2: x, y) to each point of ``dst`` (exact: a sweep outwards
+    from its place in x, ``xs`` = src's x sorted by ``order``, stopped once the x distance alone exceeds the
+    best; ties: the first found). ``out``: int64, one per dst point (-1 when src is empty)."""
+    n = xs.shape[0]
+    for i in range(dst.shape[0]):
+        qx = dst[i, 0]
+        qy = dst[i, 1]
+        best = np.inf
+        bj = -1
+        lo = 0
+        hi = n
+        while lo < hi:      # first sorted place with xs >= qx
+            mid = (lo + hi) >> 1
+            if xs[mid] < qx:
+                lo = mid + 1
+            else:
+                hi = mid
+        r = lo
+        l_ = lo - 1
+        while r < n or l_ >= 0:
+            if r < n:
+                tx = xs[r] - qx
+                if tx * tx >= best:
+                    r = n
+                else:
+                    j = order[r]
+                    ty = src[j, 1] - qy
+                    d2 = tx * tx + ty * ty
+                    if d2 < best:
+                        best = d2
+                        bj = j
+                    r += 1
+            if l_ >= 0:
+                tx = xs[l_] - qx
+                if tx * tx >= best:
+                    l_ = -1
+                else:
+                    j = order[l_]
+                    ty = src[j, 1] - qy
+                    d2 = tx * tx + ty * ty
+                    if d2 < best:
+                        best = d2
+                        bj = j
+                    l_ -= 1
+        out[i] = bj
+
+
+@nb.njit(cache=True)
+def nn_steps(pts, start, end, follows, max_pairs):
+    """Per-axis steps (px) of mutual nearest neighbours between consecutive frames (the first look at the
+    step distribution of :func:`ptrack.link._nn_steps`).
+
+    Parameters
+    ----------
+    pts : (n, 2) float64 array
+        x, y (px) of the localisations, frame after frame.
+    start, end : int64 arrays
+        Each frame's rows of ``pts``.
+    follows : bool array
+        Frame k + 1 is the frame after frame k (the pair k, k + 1 is measured).
+    max_pairs : int
+        Stop after the pair of frames that brings the count to this.
+
+    Returns
+    -------
+    dx, dy : float64 arrays (px)
+        Each mutual pair's step, frame pair after frame pair, in the order of the earlier frame's points.
+    """
+    n = pts.shape[0]
+    dx = np.empty(n)
+    dy = np.empty(n)
+    m = 0
+    for k in range(start.shape[0] - 1):
+        if not follows[k]:
+            continue
+        a = pts[start[k]:end[k]]
+        b = pts[start[k + 1]:end[k + 1]]
+        na = a.shape[0]
+        nb_ = b.shape[0]
+        if na < 1 or nb_ < 1:
+            continue
+        oa = np.argsort(a[:, 0])
+        ob = np.argsort(b[:, 0])
+        ib = np.empty(nb_, np.int64)
+        ia = np.empty(na, np.int64)
+        _nearest(a, oa, a[:, 0][oa], b, ib)
+        _nearest(b, ob, b[:, 0][ob], a, ia)
+        for i in range(na):
+            if ia[i] >= 0 and ib[ia[i]] == i:
+                dx[m] = b[ia[i], 0] - a[i, 0]
+                dy[m] = b[ia[i], 1] - a[i, 1]
+                m += 1
+        if m >= max_pairs:
+            break
+    return dx[:m], dy[:m]
+
+
+@nb.njit(cache=True)
 def _candidates(src, dst, ub, max_nb):
     """Each destination's up to ``max_nb`` nearest sources closer than ``ub``, as per-source candidate lists.
 

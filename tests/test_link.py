@@ -89,3 +89,31 @@ def test_link_matches_trackpy_with_estimated_range():
     sr = out.attrs["link"]["search_range_px"]
     a = _trackpy_ids(f, (sr, sr), 3, ["y_px", "x_px"])
     assert _same_partition(a, out["particle"].to_numpy())
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_nn_steps_are_mutual_nearest_neighbours(seed):
+    """ptrack.linknb.nn_steps (the sweep in x) gives the steps of scipy's mutual nearest neighbours, in their
+    order, between consecutive frames only (a missing frame number breaks the chain)."""
+    from scipy.spatial import cKDTree
+
+    from ptrack.link import _nn_steps
+
+    rng = np.random.default_rng(seed)
+    frames = np.sort(rng.choice([0, 1, 2, 4, 5, 6], 400))
+    x = rng.uniform(0, 200, 400)
+    x[::7] = np.round(x[::7])                   # equal x values in a frame
+    y = rng.uniform(0, 50, 400)
+    dx, dy = _nn_steps(frames, x, y)
+    want_x, want_y = [], []
+    for f in (0, 1, 4, 5):
+        a = np.c_[x[frames == f], y[frames == f]]
+        b = np.c_[x[frames == f + 1], y[frames == f + 1]]
+        ib = cKDTree(a).query(b)[1]
+        ia = cKDTree(b).query(a)[1]
+        mutual = ib[ia] == np.arange(len(a))
+        want_x.append(b[ia[mutual], 0] - a[mutual, 0])
+        want_y.append(b[ia[mutual], 1] - a[mutual, 1])
+    assert len(dx) > 100
+    np.testing.assert_array_equal(dx, np.concatenate(want_x))
+    np.testing.assert_array_equal(dy, np.concatenate(want_y))
