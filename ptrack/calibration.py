@@ -40,6 +40,7 @@ _WIDE_MASK = 1 / 8         # second candidate-mask smoothing, x the largest temp
 _REFINE_SCALE = 1 / 1.2    # refine only particles whose 95 % light discs overlap (see build_calibration)
 _PAIR_SEEDS = True         # _split also tries parts seeded at the window's best correlation maxima
 _PAIR_SEP = 8.0            # px between those seeds (5: recall 0.944, overlapping-image z RMSE 2.15 %)
+_SWEEP_MARGIN = 2          # shift range (px) of _split's re-matches of its parts after the first sweep
 _JOINT_FIT = False         # _split places each part by a joint least-squares fit of all parts (_joint_place), for
                            # the attempts its plain sweeps leave unaccepted (_JOINT_RESCUE): bench_pipeline B
                            # diffusion3d recall 0.950 -> 0.960, precision 0.966 -> 0.968, but z RMSE of overlapping
@@ -1280,11 +1281,11 @@ def _split(res, pad, tmpl, calib, hit, model, cap, n_parts, m, z_points, cm_drop
     def sweep(parts, pm, by_joint=False, n_sweeps=3):
         """Each part re-matched with the others subtracted (at most ``n_sweeps`` sweeps; in place); ``by_joint``:
         each matched (+-1 px) where :func:`_joint_place` puts it."""
-        for _ in range(n_sweeps):
+        for it in range(n_sweeps):
             same = True
             for j in range(len(parts)):
                 res.add(*pm[j])
-                y, x, mj, pg = parts[j]["y_px"], parts[j]["x_px"], m, None
+                y, x, mj, pg = parts[j]["y_px"], parts[j]["x_px"], m if it == 0 else min(m, _SWEEP_MARGIN), None
                 if by_joint:
                     jp = _joint_place(res, pad, tmpl, calib, parts, pm, j, m, coarse)
                     if jp is not None:
