@@ -233,13 +233,23 @@ def _kick_check(pos, vel, omega, force, torque, kick, rotation, guards):
 
 
 @njit(cache=True)
-def _kick_drift(pos, vel, omega, force, torque, kick, ref_pos, dt, rotation, skin):
+def _kick_drift(pos, vel, omega, force, torque, kick, ref_pos, dt, rotation, skin, ext, fconst, radius, charge,
+                gamma, drag_mode, extp, seed, step):
     """First half of a velocity-Verlet step in one pass over the particles: half kick of ``vel`` (and
     ``omega``; factors of :func:`_kick_factors`), drift of ``pos``; returns True when some particle moved
     more than skin/2 since the list was built (:func:`sim.neighbors.needs_rebuild`, the same test).  The
     same arithmetic per particle as :func:`_kick_check`, the drift and ``needs_rebuild`` one after the
-    other."""
+    other.
+
+    With ``ext`` the same pass also starts the step's force pass (what :func:`_begin_forces` does per
+    particle: ``force`` = the external forces at the kicked velocity, ``torque`` = 0), once the kick has
+    read the old force: one pass over the per-particle arrays less per step.  Only without Brownian
+    force (its numbers are keyed by the slot, which a re-ordering rebuild after this pass changes); the
+    rebuild permutes ``force`` and ``torque`` with the particles, so the values are those of
+    :func:`_begin_forces` after it bit for bit."""
     d2max = 0.0
+    magnetic = extp[6] != 0.0 or extp[7] != 0.0 or extp[8] != 0.0
+    kT = extp[5]
     # the half kick is written out here and in _kick_check on purpose: shared as one function
     # (_half_kick, inlined or not, with or without a return value) the whole Hooke reference run took 2x
     # as long (N = 1e3, 1e5 steps: 2.7 -> 5.5 s CPU, same results bit for bit; measured 2 Dec 2026)
@@ -268,6 +278,17 @@ def _kick_drift(pos, vel, omega, force, torque, kick, ref_pos, dt, rotation, ski
         d2 = dx * dx + dy * dy + dz * dz
         if d2 > d2max:
             d2max = d2
+        if ext:
+            fx, fy, fz = _external_one(fconst[i, 0], fconst[i, 1], fconst[i, 2], vx, vy, vz, radius[i], charge[i],
+                                       gamma[i], drag_mode, extp[0], extp[1], extp[2], extp[3], extp[4], extp[6],
+                                       extp[7], extp[8], magnetic, kT, seed, step, dt, i)
+            force[i, 0] = 0.0 + fx
+            force[i, 1] = 0.0 + fy
+            force[i, 2] = 0.0 + fz
+            if rotation:
+                torque[i, 0] = 0.0
+                torque[i, 1] = 0.0
+                torque[i, 2] = 0.0
     return d2max > 0.25 * skin * skin
 
 
@@ -437,12 +458,15 @@ def _run_verlet(nsteps, dt, step0, phi, n_iter,
     pairs = model != CONTACT_NONE or pair_laws.shape[0] > 0
     kick = np.empty((2, pos.shape[0]))
     _kick_factors(mass, inertia, hdt, rotation, kick)
+    # without Brownian force the external forces start the force pass inside the kick-drift pass
+    ext = not extp[5] > 0.0
     for s in range(nsteps):
         step = step0 + s + 1
-        # kick + drift + skin test in one pass, external forces with the zeroing in one pass: the
-        # arithmetic of the half kick, the drift, needs_rebuild and _forces in the same order per particle,
-        # so the results are those of the separate loops bit for bit
-        if _kick_drift(pos, vel, omega, force, torque, kick, ref_pos, dt, rotation, skin):
+        # kick + drift + skin test (+ external forces and the zeroing) in one pass: the arithmetic of the
+        # half kick, the drift, needs_rebuild and _forces in the same order per particle, so the results
+        # are those of the separate loops bit for bit
+        if _kick_drift(pos, vel, omega, force, torque, kick, ref_pos, dt, rotation, skin, ext, fconst, radius,
+                       charge, gamma, drag_mode, extp, seed, step):
             start, nbj, shift, hist = _rebuild_any(pos, image, vel, omega, force, torque, radius, mass,
                                                    inertia, charge, gamma, fconst, frozen, whist, order,
                                                    cutoff, skin, lo, length, periodic, start, nbj, hist,
@@ -450,8 +474,12 @@ def _run_verlet(nsteps, dt, step0, phi, n_iter,
             if order is not None:  # the rebuild re-ordered the particles
                 _kick_factors(mass, inertia, hdt, rotation, kick)
             nbuild += 1
-        _begin_forces(vel, radius, charge, gamma, fconst, drag_mode, extp, seed, step, dt, rotation, force,
-                      torque, diag)
+        if ext:
+            for k in range(D_SIZE):
+                diag[k] = 0.0
+        else:
+            _begin_forces(vel, radius, charge, gamma, fconst, drag_mode, extp, seed, step, dt, rotation, force,
+                          torque, diag)
         _interaction_forces(pos, vel, omega, radius, mass, charge, model, cp, cpw, pair_laws, wall_laws,
                             rotation, walls, whist, start, nbj, shift, hist, force, torque, dt, diag, fbuf,
                             tbuf, dbuf, pairs)
