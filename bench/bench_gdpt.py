@@ -86,6 +86,7 @@ def speed_table(quick):
     from ptrack.gdpt.fast import match_scale
 
     half = 30e-6
+    stages = []
     for layout, d in [(lay, d) for lay in ("grid", "random") for d in (2e-6, 1.3e-6, 0.95e-6)]:
         test_gdpt.D = d             # image growth: templates up to ~100, ~150, ~220 px
         rng = np.random.default_rng(2)
@@ -103,6 +104,7 @@ def speed_table(quick):
             frames.append(gaussian_frame((512, 512), xs, ys, zs, 2e5, 20.0, rng))
             truth.append((xs, ys, zs))
         locate_frame_3d(frames[0], cal)                 # warm-up (caches of reduced templates)
+        cal.info["stage_times_s"] = {}                   # the stages of the timed frames only
         tp = tl = tc = 0.0
         found = n = 0
         errs = []
@@ -124,7 +126,14 @@ def speed_table(quick):
         print(f"{layout:>6} {d * 1e6:5.2f} {cal.size:19d} {len(cal.z):9d} {match_scale(cal):5d} {found / n:7.3f} "
               f"{100 * rm / cal.depth:14.2f} {1000 * tp / nf:10.1f} {1000 * tl / nf:9.1f} {nf / tl:8.2f} "
               f"{1000 * tc / nf:7.1f} {nf / tc:12.2f}")
+        st = cal.info["stage_times_s"]
+        stages.append((layout, d, {k: 1000 * v / nf for k, v in st.items()}))
     test_gdpt.D = 2e-6
+    names = list(stages[0][2]) if stages else []
+    print("\n    GDPT stages (locate_frame_3d's calib.info['stage_times_s'], wall ms per frame)")
+    print(f"    {'layout':>6} {'d um':>5} " + " ".join(f"{n:>11}" for n in names))
+    for layout, d, st in stages:
+        print(f"    {layout:>6} {d * 1e6:5.2f} " + " ".join(f"{st.get(n, 0.0):11.1f}" for n in names))
     print("    (locate includes prepare; CPU: the process's CPU time in locate, all threads, which a busy machine "
           "inflates less than the wall time. grid: 5 x 4 particles 100-120 px apart, images overlap only at the largest "
           "defocus; random: uniform positions, many large images overlap: recall of a crowded frame)")

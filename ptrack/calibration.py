@@ -1399,7 +1399,8 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
               min_mass: float = 0.5, max_mass: float | None = 1.8, coarse: int = 4,
               amp_cap: float | None = 1.15, split_at: float | None = 1.3, split_gain: float = 100.0,
               split_chi2: float = 3.0, max_chi2: float | None = None, ghost_mass: float = 0.7,
-              ghost_px: float = 6.0, merged_cm: float | None = 0.99, split_cm: float | None = 0.995) -> pd.DataFrame:
+              ghost_px: float = 6.0, merged_cm: float | None = 0.99, split_cm: float | None = 0.995,
+              times: dict | None = None) -> pd.DataFrame:
     """Detect defocused particles in a background-subtracted frame and measure x, y, z, Cm.
 
     Built for realistic (crowded) frames, where defocused images overlap and
@@ -1462,6 +1463,10 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
        part only (:func:`_masked_ncc`); particles whose centre lies more
        than 1 px outside the frame are not reported.
 
+    ``times``: a dict to which the wall seconds of the stages are added
+    (``mask``, ``candidates``, ``match``, ``split``, ``refine``, ``edge``;
+    default ``calib.info["stage_times_s"]``, summed over the frames).
+
     Brightness: fluorescence, the fitted model's photons (``mass``);
     brightfield, the fitted amplitude relative to the calibration particle.
 
@@ -1486,9 +1491,21 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
         best template's window leaves the frame: a cut image, matched and
         fitted on its visible part).
     """
+    import time
+
     import cv2
 
     from .preprocess import median3, noise_sigma
+
+    if times is None:
+        times = calib.info.setdefault("stage_times_s", {})
+    clock = [time.perf_counter()]
+
+    def tick(stage):
+        # wall seconds since the last tick added to the stage (for the pipeline's JSON summary)
+        t = time.perf_counter()
+        times[stage] = times.get(stage, 0.0) + t - clock[0]
+        clock[0] = t
 
     img = np.ascontiguousarray(img, np.float32)
     H, W = img.shape
@@ -1521,6 +1538,7 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
         if small.size:
             signal[np.isin(labels, small)] = 0
     if not signal.any():
+        tick("mask")
         return pd.DataFrame({k: [] for k in ("x_px", "y_px", "z", "cm", "page", "snr", "mass", "chi2", "edge")})
     # a ring's dark centre is still a candidate: grow the signal mask by the largest image radius
     rad = max(3, int(0.5 * max(t.shape[0] for t in calib.templates) * 0.6))
@@ -1541,9 +1559,11 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
     def xy():
         return np.array([(h["y_px"], h["x_px"]) for h in hits], float).reshape(-1, 2)
 
+    tick("mask")
     for rnd in range(max(1, int(rounds))):
         rr, cc, _, kk = _candidates(res.img, pad, tmpl, calib, (H, W), mask, n_templates, c_candidate,
                                     exclude=xy() if hits else None, with_page=True)
+        tick("candidates")
         new = 0
         n_at_start = len(hits)
         idx = _HitIndex(hits, tmpl)     # positions and windows of the hits, for the checks below (no loop over hits)
@@ -1593,6 +1613,7 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
                     models[i] = res.model(h, cap(h))
                     res.subtract(*models[i])
                     new += 1
+        tick("match")
         if split_at:
             # images of 2-3 particles closer than their image size, matched as one brighter particle at a compromise
             # z (even with the amplitude cap, the residual keeps looking like the merged image): fit them as 2 or 3
@@ -1645,6 +1666,7 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
                 hits.extend(parts[1:])
                 new += len(parts) - 1
                 models.extend(pm[1:])
+        tick("split")
         if new == 0 and rnd > 0:
             break
         # which hits changed since their neighbours were last matched: new ones (no "settled" key) and those
@@ -1693,6 +1715,7 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
                 h["settled"] = not dropped and id(h) not in moved
             if not moved and not dropped:
                 break
+        tick("refine")
         if new == 0:
             break
     # images cut by the frame edge (> 15 % of the template's signal outside): matched again with only their
@@ -1739,6 +1762,7 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
         out["chi2"].append(chi2)
         T = tmpl[h["page"]].shape[0]
         out["edge"].append(bool(h["top"] < pad or h["left"] < pad or h["top"] + T > pad + H or h["left"] + T > pad + W))
+    tick("edge")
     return pd.DataFrame(out)
 
 
@@ -1779,21 +1803,28 @@ def locate_frame_3d(raw, calib: Calibration, brightfield: bool = False, backgrou
         ``x_px``, ``y_px`` (px), ``z`` (m), ``cm``, ``mass`` and the
         diagnostic columns of :func:`locate_3d` (``chi2``, ``edge``...).
     """
+    import time
+
     from .gdpt.fast import match_scale, reduce_frame, reduced_calibration, refine_full
 
+    t0 = time.perf_counter()
+    times = calib.info.setdefault("stage_times_s", {})
     img = prepare_gdpt(raw, calib, brightfield=brightfield, background=background)
+    times["prepare"] = times.get("prepare", 0.0) + time.perf_counter() - t0
     f = options.pop("scale", None) or match_scale(calib)
     if f <= 1:
-        return locate_3d(img, calib, snr=snr, cm_min=cm_min, **options)
+        return locate_3d(img, calib, snr=snr, cm_min=cm_min, times=times, **options)
     # large templates: matched at 1/f resolution (ptrack.gdpt.fast), x, y, z refined at full resolution
     # (the brightness cut on faint leftovers, min_mass x the frame's median, after the full-resolution brightness)
     min_mass = options.pop("min_mass", 0.5)
     df = locate_3d(reduce_frame(img, f), reduced_calibration(calib, f), snr=snr, cm_min=cm_min, min_mass=0.0,
-                   **options)
+                   times=times, **options)
     df["x_px"] = (df["x_px"] + 0.5) * f - 0.5
     df["y_px"] = (df["y_px"] + 0.5) * f - 0.5
     df["mass"] = df["mass"] * (f * f)
+    t0 = time.perf_counter()
     df = refine_full(img, calib, df, f)
+    times["refine_full"] = times.get("refine_full", 0.0) + time.perf_counter() - t0
     if len(df) >= 3 and min_mass:
         df = df[df["mass"] >= min_mass * float(df["mass"].median())].reset_index(drop=True)
     return df
