@@ -68,7 +68,8 @@ def locate_movie(movie, brightfield: bool | None = None, diameter: float | None 
         and ``cm`` in 3D).
     info : dict
         Settings used (``sigma_px``, ``background``, ``polarity``...) and
-        ``stage_times_s`` (read, locate, z).
+        ``stage_times_s`` (read, locate, z, and the parts of locate and z
+        as ``locate.*`` and ``z.*``).
     """
     from . import calibration as cal_mod
     from .image.detect import detect
@@ -124,6 +125,8 @@ def locate_movie(movie, brightfield: bool | None = None, diameter: float | None 
         raise UserError(f"background = {background!r} is not known", "use spatial, temporal or none")
     has_3d = hasattr(cal_mod, "locate_frame_3d")
     chunks = []
+    # GDPT sums its own stage times into calib.info (over every call): this movie's share is the difference
+    z_before = dict(calib.info.get("stage_times_s", {})) if calib is not None else {}
     with _progress(len(frames), Path(movie.source).name, progress) as bar:
         for i in frames:
             t = time.perf_counter()
@@ -163,6 +166,8 @@ def locate_movie(movie, brightfield: bool | None = None, diameter: float | None 
         info["diameter_px"] = sigma_to_diameter(info["sigma_px"])
     # the multi-scale locator's own split of "locate" (detect, fit, centres), summed over frames
     times.update({"locate." + k: v for k, v in maps.get("stage_times_s", {}).items()})
+    if calib is not None:
+        times.update({"z." + k: v - z_before.get(k, 0.0) for k, v in calib.info.get("stage_times_s", {}).items()})
     info["stage_times_s"] = {k: round(v, 4) for k, v in times.items()}
     return feats, info
 

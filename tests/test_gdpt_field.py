@@ -372,6 +372,10 @@ def test_track_field_calib_end_to_end(tmp_path, curved_field):
         err = g["z"].to_numpy()[fi] - z0[ti]
         rms[name] = float(np.sqrt(np.mean(err ** 2)))
         s = json.loads(js.read_text())
+        # GDPT's own split of the z stage: this movie's share only (its parts cannot exceed the stage)
+        st = s["stage_times_s"]
+        parts = [v for k, v in st.items() if k.startswith("z.")]
+        assert "z.match" in st and all(v >= 0 for v in parts) and sum(parts) <= st["z"] * 1.01 + 1e-3, st
         if name == "field":
             assert s["calibration"]["field"]["n_beads"] == 9
             assert "field_calibration" in s["stage_times_s"]
