@@ -64,6 +64,9 @@ except Exception:  # noqa: BLE001
     pass
 
 OK, BLOWUP_OVERLAP, BLOWUP_NAN, BLOWUP_WALL, BLOWUP_SPEED = 0, 1, 2, 3, 4
+# the velocity-Verlet stepper's answer when a step's end state failed a check that it made only inside the
+# next step's pass (DEMSystem.run then repeats the call from its start without that fusion: G_PLAIN)
+REPLAY = -1
 STATUS_TEXT = {
     BLOWUP_OVERLAP: "overlap beyond the allowed fraction of a radius",
     BLOWUP_NAN: "NaN or infinite position/velocity",
@@ -76,8 +79,9 @@ VERLET, PHI_SCHEME, OVERDAMPED = 0, 1, 2  # integrator codes (STEPPERS: the kern
 
 # the ``guards`` array of the kernels: blow-up limits, the fixed-point tolerance and the overdamped
 # stepper's options (sticking substrate, largest drift step in m, time at which to stop in s, and the clock's
-# value at the start of a call: the overdamped stepper counts absolute time from it, the fixed-step ones from 0)
-G_MAX_OVERLAP, G_V_MAX, G_HAS_BOTTOM, G_TOL, G_STICK, G_MAX_STEP, G_T_STOP, G_T_START = 0, 1, 2, 3, 4, 5, 6, 7
+# value at the start of a call: the overdamped stepper counts absolute time from it, the fixed-step ones from 0;
+# G_PLAIN 1: the velocity-Verlet stepper keeps every step's second half kick in a pass of its own)
+G_MAX_OVERLAP, G_V_MAX, G_HAS_BOTTOM, G_TOL, G_STICK, G_MAX_STEP, G_T_STOP, G_T_START, G_PLAIN = range(9)
 # the ``chunk_peaks`` array: largest values over a run() call
 P_OVERLAP, P_W2, P_DAMP = 0, 1, 2
 
@@ -234,7 +238,7 @@ def _kick_check(pos, vel, omega, force, torque, kick, rotation, guards):
 
 @njit(cache=True)
 def _kick_drift(pos, vel, omega, force, torque, kick, ref_pos, dt, rotation, skin, ext, fconst, radius, charge,
-                gamma, drag_mode, extp, seed, step):
+                gamma, drag_mode, extp, seed, step, pending, guards):
     """First half of a velocity-Verlet step in one pass over the particles: half kick of ``vel`` (and
     ``omega``; factors of :func:`_kick_factors`), drift of ``pos``; returns True when some particle moved
     more than skin/2 since the list was built (:func:`sim.neighbors.needs_rebuild`, the same test).  The
@@ -246,18 +250,49 @@ def _kick_drift(pos, vel, omega, force, torque, kick, ref_pos, dt, rotation, ski
     read the old force: one pass over the per-particle arrays less per step.  Only without Brownian
     force (its numbers are keyed by the slot, which a re-ordering rebuild after this pass changes); the
     rebuild permutes ``force`` and ``torque`` with the particles, so the values are those of
-    :func:`_begin_forces` after it bit for bit."""
+    :func:`_begin_forces` after it bit for bit.
+
+    With ``pending`` the pass first gives each particle the last step's second half kick (the force has
+    not changed since) and makes the blow-up checks of :func:`_kick_check` on it, one pass less per step:
+    the same operations in the same order per particle as :func:`_kick_check` followed by this pass.
+
+    Returns ``(rebuild, status, particle)``: the skin test, and the first particle failing a check of
+    the last step's end state (the pass is not stopped: that state is gone for the particles before it,
+    so the caller repeats the call without the fusion, :data:`REPLAY`).
+    """
     d2max = 0.0
     magnetic = extp[6] != 0.0 or extp[7] != 0.0 or extp[8] != 0.0
     kT = extp[5]
+    vmax2 = guards[G_V_MAX] * guards[G_V_MAX]
+    bottom = guards[G_HAS_BOTTOM] != 0.0
+    st = OK
+    p = -1
     # the half kick is written out here and in _kick_check on purpose: shared as one function
     # (_half_kick, inlined or not, with or without a return value) the whole Hooke reference run took 2x
     # as long (N = 1e3, 1e5 steps: 2.7 -> 5.5 s CPU, same results bit for bit; measured 2 Dec 2026)
     for i in range(pos.shape[0]):
         im = kick[0, i]
-        vx = vel[i, 0] + im * force[i, 0]
-        vy = vel[i, 1] + im * force[i, 1]
-        vz = vel[i, 2] + im * force[i, 2]
+        vx = vel[i, 0]
+        vy = vel[i, 1]
+        vz = vel[i, 2]
+        if pending:
+            # _kick_check's half kick and checks
+            vx = vx + im * force[i, 0]
+            vy = vy + im * force[i, 1]
+            vz = vz + im * force[i, 2]
+            if rotation:
+                ii = kick[1, i]
+                omega[i, 0] += ii * torque[i, 0]
+                omega[i, 1] += ii * torque[i, 1]
+                omega[i, 2] += ii * torque[i, 2]
+            if p < 0:
+                sti = _check_one(pos[i, 0], pos[i, 1], pos[i, 2], vx, vy, vz, bottom, vmax2)
+                if sti != OK:
+                    st = sti
+                    p = i
+        vx = vx + im * force[i, 0]
+        vy = vy + im * force[i, 1]
+        vz = vz + im * force[i, 2]
         vel[i, 0] = vx
         vel[i, 1] = vy
         vel[i, 2] = vz
@@ -289,7 +324,7 @@ def _kick_drift(pos, vel, omega, force, torque, kick, ref_pos, dt, rotation, ski
                 torque[i, 0] = 0.0
                 torque[i, 1] = 0.0
                 torque[i, 2] = 0.0
-    return d2max > 0.25 * skin * skin
+    return d2max > 0.25 * skin * skin, st, p
 
 
 @njit(cache=True)
@@ -460,13 +495,22 @@ def _run_verlet(nsteps, dt, step0, phi, n_iter,
     _kick_factors(mass, inertia, hdt, rotation, kick)
     # without Brownian force the external forces start the force pass inside the kick-drift pass
     ext = not extp[5] > 0.0
+    # a step's second half kick and checks are made in the next step's kick-drift pass (and after the last
+    # step of the call), unless guards[G_PLAIN]; ``pending``: the last step's second half kick is owed
+    fuse = guards[G_PLAIN] == 0.0
+    pending = False
     for s in range(nsteps):
         step = step0 + s + 1
-        # kick + drift + skin test (+ external forces and the zeroing) in one pass: the arithmetic of the
-        # half kick, the drift, needs_rebuild and _forces in the same order per particle, so the results
-        # are those of the separate loops bit for bit
-        if _kick_drift(pos, vel, omega, force, torque, kick, ref_pos, dt, rotation, skin, ext, fconst, radius,
-                       charge, gamma, drag_mode, extp, seed, step):
+        # (last step's second half kick and checks +) kick + drift + skin test (+ external forces and the
+        # zeroing) in one pass: the arithmetic of the half kicks, the checks, the drift, needs_rebuild and
+        # _forces in the same order per particle, so the results are those of the separate loops bit for bit
+        rebuild, cst, cpart = _kick_drift(pos, vel, omega, force, torque, kick, ref_pos, dt, rotation, skin, ext,
+                                          fconst, radius, charge, gamma, drag_mode, extp, seed, step, pending,
+                                          guards)
+        if cst != OK:
+            # the end state of step s failed a check; this pass has moved particles on past it
+            return REPLAY, s, cpart, start, nbj, shift, hist, ref_pos, nbuild, t_done
+        if rebuild:
             start, nbj, shift, hist = _rebuild_any(pos, image, vel, omega, force, torque, radius, mass,
                                                    inertia, charge, gamma, fconst, frozen, whist, order,
                                                    cutoff, skin, lo, length, periodic, start, nbj, hist,
@@ -483,11 +527,28 @@ def _run_verlet(nsteps, dt, step0, phi, n_iter,
         _interaction_forces(pos, vel, omega, radius, mass, charge, model, cp, cpw, pair_laws, wall_laws,
                             rotation, walls, whist, start, nbj, shift, hist, force, torque, dt, diag, fbuf,
                             tbuf, dbuf, pairs)
-        cst, cpart = _kick_check(pos, vel, omega, force, torque, kick, rotation, guards)
         t_done += dt
-        st, p, stop = _end_step_checked(cst, cpart, guards, diag, chunk_peaks, t_done)
-        if stop:
-            return st, s + 1, p, start, nbj, shift, hist, ref_pos, nbuild, t_done
+        if fuse:
+            # the checks of the forces (overlap) and of the time now, those of the kicked state later
+            st, p, stop = _end_step_checked(OK, -1, guards, diag, chunk_peaks, t_done)
+            if stop:
+                # the call ends here: this step's second half kick now, and the status _end_step_checked
+                # gives the plain path (the overlap first, then the kicked state's)
+                cst, cpart = _kick_check(pos, vel, omega, force, torque, kick, rotation, guards)
+                if st == OK and cst != OK:
+                    st = cst
+                    p = cpart
+                return st, s + 1, p, start, nbj, shift, hist, ref_pos, nbuild, t_done
+            pending = True
+        else:
+            cst, cpart = _kick_check(pos, vel, omega, force, torque, kick, rotation, guards)
+            st, p, stop = _end_step_checked(cst, cpart, guards, diag, chunk_peaks, t_done)
+            if stop:
+                return st, s + 1, p, start, nbj, shift, hist, ref_pos, nbuild, t_done
+    if pending:
+        cst, cpart = _kick_check(pos, vel, omega, force, torque, kick, rotation, guards)
+        if cst != OK:
+            return cst, nsteps, cpart, start, nbj, shift, hist, ref_pos, nbuild, t_done
     if force_rebuild_at_end:
         # deterministic restart point: list rebuilt from these exact positions
         start, nbj, shift, hist = _rebuild_any(pos, image, vel, omega, force, torque, radius, mass, inertia,
@@ -813,7 +874,7 @@ class DEMSystem:
         bottom = self._has_bottom() or substrate is not None
         # G_* indices
         self.guards = f64([max_overlap, v_max, 1.0 if bottom else 0.0, tol, 1.0 if substrate == "stick" else 0.0,
-                           max_step, 0.0, 0.0])
+                           max_step, 0.0, 0.0, 0.0])
         self.frozen = np.zeros(n)  # 1: stuck on the substrate (overdamped stepper), no longer moved
         self.integrator = int(integrator)
         self.phi = float(phi)
@@ -931,16 +992,18 @@ class DEMSystem:
             k = left if chunker is None else min(left, chunker.size)
             if chunker is not None:
                 chunker.start()
-            out = stepper(k, self.dt, self.step, self.phi, self.n_iter,
-                             self.pos, self.image, self.vel, self.omega, self.force, self.torque, self.radius,
-                             self.mass, self.inertia, self.charge, self.gamma, self.fconst, self.frozen,
-                             self.drag_mode,
-                             self.extp, self.seed, self.model, self.cp, self.cpw, self.pair_laws,
-                             self.wall_laws, self.rotation, self.walls, self.whist, self.start, self.nbj,
-                             self.shift, self.hist, self.ref_pos, self.cutoff, self.skin, self.lo, self.length,
-                             self.periodic, self.guards, self.diag, self.chunk_peaks,
-                             bool(rebuild_at_end) and k == left, fbuf, tbuf, dbuf,
-                             self.particle_order if self.sort else None)
+            # the velocity-Verlet stepper may answer REPLAY (a blow-up found a pass late): the call is then
+            # repeated from a copy of the state at its start without that fusion, which ends exactly where
+            # the plain stepper ends (same steps, same state)
+            snap = self._snapshot() if self.integrator == VERLET else None
+            out = self._call(stepper, k, bool(rebuild_at_end) and k == left, fbuf, tbuf, dbuf)
+            if out[0] == REPLAY:
+                self._restore(snap)
+                self.guards[G_PLAIN] = 1.0
+                try:
+                    out = self._call(stepper, k, bool(rebuild_at_end) and k == left, fbuf, tbuf, dbuf)
+                finally:
+                    self.guards[G_PLAIN] = 0.0
             status, done, part, self.start, self.nbj, self.shift, self.hist, self.ref_pos, nb, t_done = out
             if chunker is not None:
                 chunker.done(done)   # the chunker sizes calls in steps (k above), so it is told steps
@@ -959,6 +1022,37 @@ class DEMSystem:
             if poll is not None and left > 0:
                 poll()
         return status
+
+    def _call(self, stepper, k, rebuild_at_end, fbuf, tbuf, dbuf):
+        """One call of the stepper kernel for ``k`` steps on this system's arrays; returns its tuple."""
+        return stepper(k, self.dt, self.step, self.phi, self.n_iter,
+                       self.pos, self.image, self.vel, self.omega, self.force, self.torque, self.radius,
+                       self.mass, self.inertia, self.charge, self.gamma, self.fconst, self.frozen,
+                       self.drag_mode,
+                       self.extp, self.seed, self.model, self.cp, self.cpw, self.pair_laws,
+                       self.wall_laws, self.rotation, self.walls, self.whist, self.start, self.nbj,
+                       self.shift, self.hist, self.ref_pos, self.cutoff, self.skin, self.lo, self.length,
+                       self.periodic, self.guards, self.diag, self.chunk_peaks,
+                       rebuild_at_end, fbuf, tbuf, dbuf,
+                       self.particle_order if self.sort else None)
+
+    #: every array a stepper call may change (in place, or by returning a new neighbour list)
+    _KERNEL_ARRAYS = ("pos", "image", "vel", "omega", "force", "torque", "radius", "mass", "inertia", "charge",
+                      "gamma", "fconst", "frozen", "whist", "particle_order", "start", "nbj", "shift", "hist",
+                      "ref_pos", "diag", "chunk_peaks")
+
+    def _snapshot(self):
+        """Copies of :attr:`_KERNEL_ARRAYS` (the state at the start of a stepper call)."""
+        return {k: getattr(self, k).copy() for k in self._KERNEL_ARRAYS}
+
+    def _restore(self, snap):
+        """Back to a :meth:`_snapshot`, in place (callers may hold the arrays)."""
+        for k, a in snap.items():
+            cur = getattr(self, k)
+            if cur.shape == a.shape:
+                cur[...] = a
+            else:
+                setattr(self, k, a.copy())
 
     # ------------------------------------------------------------------ state I/O
     STATE_ARRAYS = ("pos", "image", "vel", "omega", "force", "torque", "whist", "fconst", "radius", "mass",
