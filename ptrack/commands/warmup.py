@@ -86,7 +86,8 @@ def warm_gdpt() -> int:
 
 
 def warm_link() -> int:
-    """Link two frames of two points by :func:`ptrack.linknb.link_ids` (compiles or loads its kernels).
+    """Link two frames of two points by :func:`ptrack.linknb.link_ids`, and take their first range estimate's
+    nearest-neighbour steps (:func:`ptrack.link._nn_steps`): compiles or loads both linkers' kernels.
 
     Returns
     -------
@@ -95,10 +96,13 @@ def warm_link() -> int:
     """
     import numpy as np
 
+    from ..link import _nn_steps
     from ..linknb import link_ids
 
     pos = np.array([[10.0, 10.0], [30.0, 30.0], [10.5, 10.2], [29.6, 30.3]])
-    ids = link_ids(np.array([0, 0, 1, 1]), pos, 2.0, memory=1, adaptive_stop=0.3, adaptive_step=0.8)
+    frames = np.array([0, 0, 1, 1])
+    ids = link_ids(frames, pos, 2.0, memory=1, adaptive_stop=0.3, adaptive_step=0.8)
+    _nn_steps(frames, pos[:, 0], pos[:, 1])
     return len(np.unique(ids))
 
 
