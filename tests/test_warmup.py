@@ -50,3 +50,24 @@ def test_warmup_links_with_the_numba_linker():
 
     assert warm_link() == 2
     assert linknb._link_all.signatures
+
+
+def test_warmup_compiles_the_image_kernels_ptrack_track_uses():
+    # a fresh process: tracking the warm-up's small movies (fluorescence spots with overlapping and unresolved
+    # pairs, dark particles on an uneven field, rings; 16 and 8 bits) compiles the detector, the isolated,
+    # joint and split fits and the radial-profile centres, so a user's first `ptrack track` loads them
+    import subprocess
+    import sys
+
+    code = ("from ptrack.commands.warmup import warm_track\n"
+            "from ptrack.image import detect, fit, radial\n"
+            "from ptrack.image import rings\n"
+            "ks = (fit._fit_all, fit._fit_tasks, fit._split_spots, detect._best_over_scales, radial._profile_all)\n"
+            "assert not any(k.signatures for k in ks)\n"
+            "n = warm_track()\n"
+            "print(n, *[len(k.signatures) for k in ks])\n"
+            "print(sorted({str(s[0]) for s in rings._patch_mosaic.signatures}))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.splitlines()
+    counts = [int(v) for v in out[0].split()]
+    assert counts[0] > 100 and all(c >= 1 for c in counts[1:]), out
+    assert "uint8" in out[1] and "uint16" in out[1], out   # the ring test reads raw frames of both camera depths

@@ -10,7 +10,9 @@ user's first simulation or in every new dask worker. It also matches a tiny
 synthetic GDPT frame (:func:`warm_gdpt`), which compiles the correlation
 kernels of ``ptrack.gdpt.ncc`` that every 3D (``--calib``) run calls, and links
 two tiny frames (:func:`warm_link`: the numba linker of ``ptrack.linknb``,
-~20 s to compile, which every ``ptrack track`` calls). Nothing
+~20 s to compile, which every ``ptrack track`` calls) and tracks five tiny
+synthetic movies (:func:`warm_track`: the detector, fits and ring centres of
+``ptrack.image``, ~20-45 s to compile). Nothing
 it writes is kept (the runs go to a temporary folder). Running it again with
 a warm cache takes a few seconds.
 
@@ -106,6 +108,74 @@ def warm_link() -> int:
     return len(np.unique(ids))
 
 
+def _warm_movies(rng):
+    """Small movies (6 frames of 128 x 128, uint16, brightfield also uint8) of the kinds of image ``ptrack track`` meets:
+    fluorescence spots of two sizes with an overlapping pair, dark particles on an uneven bright field (with
+    dust), and rings of both kinds (bright centre in a dark ring; fluorescence rings), so the detector, the
+    ring vote, the joint and isolated fits and the radial-profile centres all run."""
+    import numpy as np
+
+    yy, xx = np.mgrid[0:128, 0:128].astype(float)
+    centres = np.array([[30.0, 30.0], [30.0, 96.0], [96.0, 30.0], [96.0, 96.0], [64.0, 64.0], [72.0, 65.0],
+                        [30.0, 62.0], [37.0, 64.0], [96.0, 62.0], [98.4, 63.0]])
+    # two overlapping pairs (joint fits) and an unresolved one (the split test)
+
+    def spots(f, amp, sig):
+        out = np.zeros((128, 128))
+        for k, (x, y) in enumerate(centres + 0.4 * f):
+            out += amp * np.exp(-0.5 * ((xx - x) ** 2 + (yy - y) ** 2) / sig[k % len(sig)] ** 2)
+        return out
+
+    def rings(f, radius, width, centre_amp):
+        out = np.zeros((128, 128))
+        for x, y in centres[:4] + 0.4 * f:
+            r = np.hypot(xx - x, yy - y)
+            out += np.exp(-0.5 * ((r - radius) / width) ** 2) + centre_amp * np.exp(-0.5 * (r / width) ** 2)
+        return out
+
+    light = 1.0 + 0.3 * xx / 128.0
+    movies = {
+        "fluorescence": [100.0 + spots(f, 400.0, (1.5, 3.0)) for f in range(6)],
+        "brightfield": [light * (2000.0 - spots(f, 900.0, (2.5,))) - 600.0 * np.exp(-((xx - 110) ** 2 + (yy - 12) ** 2) / 30.0)
+                        for f in range(6)],
+        "rings": [light * (1500.0 - 500.0 * rings(f, 6.0, 1.3, -1.6)) if f % 2 == 0 else 100.0 + 300.0 * rings(f, 7.0, 1.5, 0.0)
+                  for f in range(6)],
+    }
+    out = {}
+    for name, fr in movies.items():
+        counts = rng.poisson(np.stack(fr)).astype(float)
+        out[name] = np.clip(counts, 0, 65535).astype(np.uint16)
+        if name != "fluorescence":   # brightfield cameras often save 8 bits: kernels specialise on the dtype
+            out[name + "_8bit"] = np.clip(counts * (250.0 / counts.max()), 0, 255).astype(np.uint8)
+    return out
+
+
+def warm_track() -> int:
+    """Track five small synthetic movies through :func:`ptrack.pipeline.track_movie` (the path of ``ptrack track``):
+    compiles or loads the image kernels of ``ptrack.image`` (detection, ring vote, fits, radial centres),
+    ~20-45 s cold, which a user's first ``ptrack track`` would otherwise pay.
+
+    Returns
+    -------
+    int
+        Localisations found over the movies.
+    """
+    import numpy as np
+    import tifffile
+
+    from ..pipeline import track_movie
+
+    n = 0
+    with tempfile.TemporaryDirectory(prefix="ptrack-warmup-") as tmp:
+        for name, stack in _warm_movies(np.random.default_rng(7)).items():
+            path = Path(tmp) / f"{name}.tif"
+            tifffile.imwrite(path, stack)
+            _, summary = track_movie(path, out=Path(tmp) / f"{name}.parquet", pixel_size=1e-7, frame_interval=0.1,
+                                     min_length=2, progress=False)
+            n += int(summary.get("n_localisations", 0))
+    return n
+
+
 def run(args) -> int:
     from sim.run import run_scene
 
@@ -126,6 +196,11 @@ def run(args) -> int:
     warm_link()
     if not args.quiet:
         print(f"warmup: linker compiled / loaded in {time.perf_counter() - t1:.1f} s", file=sys.stderr)
+    t1 = time.perf_counter()
+    warm_track()
+    if not args.quiet:
+        print(f"warmup: image kernels (detection, fits, ring centres) compiled / loaded in {time.perf_counter() - t1:.1f} s",
+              file=sys.stderr)
     if not args.quiet:
         print(f"warmup: numba cache ready in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     return 0
