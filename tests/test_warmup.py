@@ -71,3 +71,17 @@ def test_warmup_compiles_the_image_kernels_ptrack_track_uses():
     counts = [int(v) for v in out[0].split()]
     assert counts[0] > 100 and all(c >= 1 for c in counts[1:]), out
     assert "uint8" in out[1] and "uint16" in out[1], out   # the ring test reads raw frames of both camera depths
+
+
+def test_warmup_compiles_the_analysis_kernels():
+    # a fresh process: the synthetic table's analysis compiles the MSD / CVE sums and the velocity kernels
+    import subprocess
+    import sys
+
+    code = ("from ptrack.commands.warmup import warm_analysis\n"
+            "from ptrack.motion import cve, msd, velocity\n"
+            "ks = (msd.msd_sums_ragged, cve.cve_sums_ragged, velocity._velocity_kernel, velocity._contact_index)\n"
+            "assert not any(k.signatures for k in ks)\n"
+            "print(warm_analysis(), *[len(k.signatures) for k in ks])\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out[0] == "320" and all(int(c) >= 1 for c in out[1:]), out

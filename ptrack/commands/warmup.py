@@ -12,7 +12,8 @@ kernels of ``ptrack.gdpt.ncc`` that every 3D (``--calib``) run calls, and links
 two tiny frames (:func:`warm_link`: the numba linker of ``ptrack.linknb``,
 ~20 s to compile, which every ``ptrack track`` calls) and tracks five tiny
 synthetic movies (:func:`warm_track`: the detector, fits and ring centres of
-``ptrack.image``, ~20-45 s to compile). Nothing
+``ptrack.image``, ~20-45 s to compile), and analyses a small synthetic table
+(:func:`warm_analysis`: MSD/CVE, wall correction, velocities). Nothing
 it writes is kept (the runs go to a temporary folder). Running it again with
 a warm cache takes a few seconds.
 
@@ -176,6 +177,31 @@ def warm_track() -> int:
     return n
 
 
+def warm_analysis() -> int:
+    """Analyse a small synthetic table of drifting 3D tracks (diffusion by CVE and OLS, the wall correction,
+    velocities): compiles or loads the kernels of ``ptrack.motion`` and ``ptrack.velocity`` (~6 s cold).
+
+    Returns
+    -------
+    int
+        Rows of the synthetic table (320).
+    """
+    from ..analysis import analyze_table
+    from ..motion.synthetic import drifting_tracks
+    from ..msd import estimate_diffusion
+    from ..velocity import ensemble_velocity, particle_velocity, trim_deposited, velocity_profile
+
+    tab = drifting_tracks(8, 40, 1e-12, 0.05, (0.0, 0.0, -1e-6), sigma=2e-8, seed=1)
+    analyze_table(tab, radius=5e-7, viscosity=1e-3, temperature=293.0, wall_z=-2e-6, n_boot=10)
+    estimate_diffusion(tab, axes=("x", "y", "z"), estimator="cve", motion_blur=0.0, field_of_view="auto")
+    estimate_diffusion(tab, axes=("x", "y", "xy"), estimator="ols", motion_blur=0.0)
+    vel = particle_velocity(tab, axes="xyz", motion_blur=0.0)
+    ensemble_velocity(vel, seed=0)
+    trim_deposited(tab, float(tab["z"].min()) + 1e-7, 0.5e-6)
+    velocity_profile(tab, bins=3, motion_blur=0.0, vel=vel)
+    return len(tab)
+
+
 def run(args) -> int:
     from sim.run import run_scene
 
@@ -201,6 +227,11 @@ def run(args) -> int:
     if not args.quiet:
         print(f"warmup: image kernels (detection, fits, ring centres) compiled / loaded in {time.perf_counter() - t1:.1f} s",
               file=sys.stderr)
+    t1 = time.perf_counter()
+    warm_analysis()
+    if not args.quiet:
+        print(f"warmup: analysis kernels (MSD, CVE, wall correction, velocity) compiled / loaded in "
+              f"{time.perf_counter() - t1:.1f} s", file=sys.stderr)
     if not args.quiet:
         print(f"warmup: numba cache ready in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     return 0
