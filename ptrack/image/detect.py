@@ -66,12 +66,17 @@ FALSE_ALARM_RATE = 1e-6
 RING_RATE_SHARE = 0.5
 #: Scale (px) reported for a ring of radius R found by the ring maps: R x this
 RING_SCALE_PER_RADIUS = 0.4
-# largest full-size inverse-noise maps (bytes, all scales) kept in the cache (640 x 424: 11 MB, 0.3 ms per frame
-# faster than blocks; 1024^2: 42 MB, slower than blocks); larger frames interpolate them
-# in blocks of rows for each map
-_FULL_IVS_BYTES = 16 << 20
+# largest full-size inverse-noise maps (bytes, all scales, float32) kept in the cache (640 x 424: 5.4 MB, faster
+# than blocks; 1024^2: 21 MB, slower than blocks); larger frames interpolate them in blocks of rows for each map
+_FULL_IVS_BYTES = 8 << 20
+#: full-size inverse-noise maps in float32 by cv2.resize (False: float64 by :func:`_inverse_noise_rows`, 4x the
+#: time to make and 1.33x the bytes the best-over-scales pass reads per pixel and scale)
+_IVS32 = True
 # ... in blocks of rows of this many bytes (all scales: a block stays in the processor's cache)
 _IVS_BLOCK_BYTES = 1 << 20
+# the full-size inverse-noise maps of a cache are written into the previous map's array (kept in the blur pool):
+# a fresh 11 MB array per map measurement costs its page faults (~4 ms per 640 x 424 map against ~1 ms to fill)
+_POOL_IVS = True
 # surround of the band-pass, in units of the scale: 2 = two rungs of the sqrt(2) ladder, so the
 # ladder's blurs serve as each other's surrounds (n + 2 blurs for n scales)
 _SURROUND = 2.0
@@ -266,9 +271,18 @@ def threshold_for(lambdas, rate: float) -> float:
     return 0.5 * (lo + hi)
 
 
+def _inverse_noise_rows(invs, h, w, r0, r1, out=None):
+    """1 / noise of every scale at full resolution, rows ``r0:r1`` of an ``h x w`` frame (see
+    :func:`_inverse_noise_into`), written into ``out`` (float64, shape (len(invs), r1 - r0, w)) when given."""
+    if out is None:
+        out = np.empty((len(invs), r1 - r0, w))
+    _inverse_noise_into(invs, h, w, r0, r1, out)
+    return out
+
+
 @nb.njit(cache=True)
-def _inverse_noise_rows(invs, h, w, r0, r1):
-    """1 / noise of every scale at full resolution, rows ``r0:r1`` of an ``h x w`` frame.
+def _inverse_noise_into(invs, h, w, r0, r1, out):
+    """1 / noise of every scale at full resolution, rows ``r0:r1`` of an ``h x w`` frame, into ``out``.
 
     Parameters
     ----------
@@ -278,14 +292,11 @@ def _inverse_noise_rows(invs, h, w, r0, r1):
         Frame shape (px).
     r0, r1 : int
         Rows (px) to fill.
-
-    Returns
-    -------
-    3D float64 array, shape (len(invs), r1 - r0, w)
-        The grids interpolated bilinearly between tile centres (as cv2.resize INTER_LINEAR), 1 / counts.
+    out : 3D float64 array, shape (len(invs), r1 - r0, w)
+        Filled with the grids interpolated bilinearly between tile centres (as cv2.resize INTER_LINEAR),
+        1 / counts.
     """
     ns = len(invs)
-    out = np.empty((ns, r1 - r0, w))
     gwmax = 1
     for i in range(ns):
         gwmax = max(gwmax, invs[i].shape[1])
@@ -312,7 +323,6 @@ def _inverse_noise_rows(invs, h, w, r0, r1):
             o = out[i, r - r0]
             for c in range(w):
                 o[c] = (1 - wx[c]) * rowv[x0[c]] + wx[c] * rowv[x1[c]]
-    return out
 
 
 @nb.njit(cache=True)
@@ -402,6 +412,26 @@ def _scale_at(b1s, b2s, invs, h, w, sign, rows, cols):
             v1 = (1 - wy) * g[y0, x1] + wy * g[y1, x1]
             iv = (1 - wx) * v0 + wx * v1
             z = sign * (b1[r, c] - b2[r, c]) * iv
+            if z > best[k]:
+                best[k] = z
+                out[k] = i
+    return out
+
+
+@nb.njit(cache=True)
+def _scale_at_full(b1s, b2s, ivs, sign, rows, cols):
+    """:func:`_scale_at` from the full-size inverse-noise maps ``ivs`` (shape (scales, h, w)) that
+    :func:`_best_over_scales` read: the index of the best scale (ties: the finer) at each pixel."""
+    n = rows.shape[0]
+    out = np.zeros(n, np.int64)
+    best = np.full(n, -np.inf)
+    for i in range(ivs.shape[0]):
+        b1 = b1s[i]
+        b2 = b2s[i]
+        for k in range(n):
+            r = rows[k]
+            c = cols[k]
+            z = sign * (b1[r, c] - b2[r, c]) * ivs[i, r, c]
             if z > best[k]:
                 best[k] = z
                 out[k] = i
@@ -639,10 +669,23 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
     # measurement and kept in the cache (float64, as the row-by-row interpolation gave them); on frames
     # too large for that (> _FULL_IVS_BYTES) they are interpolated in blocks of rows for each map
     ivs = c.get("ivs_full") if not fresh else None
-    if ivs is None and len(scales) * H * W * 8 <= _FULL_IVS_BYTES:
-        ivs = _inverse_noise_rows(invs, H, W, 0, H)
+    if ivs is None and len(scales) * H * W * 4 <= _FULL_IVS_BYTES:
+        # with a cache, into the array of the previous map (kept across refreshes, see _POOL_IVS)
+        dt = np.float32 if _IVS32 else np.float64
+        buf = pool.get("ivs") if pool is not None and _POOL_IVS else None
+        if buf is None or buf.shape != (len(scales), H, W) or buf.dtype != dt:
+            buf = np.empty((len(scales), H, W), dt)
+        if _IVS32:
+            # cv2's bilinear interpolation between tile centres (the geometry of _inverse_noise_rows), float32
+            for i, g in enumerate(invs):
+                cv2.resize(g, (W, H), dst=buf[i], interpolation=cv2.INTER_LINEAR)
+            ivs = buf
+        else:
+            ivs = _inverse_noise_rows(invs, H, W, 0, H, buf)
         if cache is not None:
             cache["ivs_full"] = ivs
+            if _POOL_IVS:
+                pool["ivs"] = ivs
     def best_maps(sign, both):
         # the SNR map maximised over scale (and its scale index) of one sign, and with `both` of the other
         # sign too, from the same pass (the polarity vote)
@@ -683,7 +726,9 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
     else:
         rows, cols = local_maxima(best, float(u), int(edge), False)
     rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
-    kk = _scale_at(b1s, b2s, invs, H, W, float(polarity), rows, cols)
+    # the scale index of each candidate's best SNR, from the inverse-noise values the best-over-scales pass used
+    kk = _scale_at_full(b1s, b2s, ivs, float(polarity), rows, cols) if ivs is not None else \
+        _scale_at(b1s, b2s, invs, H, W, float(polarity), rows, cols)
     z = best[rows, cols].astype(np.float64)
     if polarity > 0 and len(rows):
         # Poisson (and sCMOS) noise is skewed to the bright side: at a low background the Gaussian

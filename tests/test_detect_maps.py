@@ -1,0 +1,48 @@
+"""detect's full-size inverse-noise maps: float32, kept in a movie's cache across map refreshes."""
+import numpy as np
+
+from ptrack.image import detect as D
+
+
+def _frame(seed, shape=(200, 260)):
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:shape[0], :shape[1]]
+    img = 30.0 + 10.0 * xx / shape[1]
+    for _ in range(25):
+        y, x = rng.uniform(10, shape[0] - 10), rng.uniform(10, shape[1] - 10)
+        img = img + 300.0 * np.exp(-((xx - x) ** 2 + (yy - y) ** 2) / (2 * 1.5 ** 2))
+    return rng.poisson(img).astype(np.uint16)
+
+
+def test_inverse_noise_maps_are_the_tile_grids_interpolated_and_reuse_their_array():
+    cache = {}
+    D.detect(_frame(0), cache=cache)
+    ivs = cache["ivs_full"]
+    assert ivs.dtype == np.float32 and ivs.shape[0] == len(D.DEFAULT_SCALES)
+    # the same bilinear interpolation between tile centres as the row-block path (float64), to float32 rounding
+    H, W = ivs.shape[1:]
+    ref = D._inverse_noise_rows(cache["invs"], H, W, 0, H)
+    assert np.allclose(ivs, ref, rtol=3e-7, atol=0)
+    # a refresh of the maps writes into the same array
+    cache["age"] = D.MAP_REFRESH
+    D.detect(_frame(1), cache=cache)
+    assert cache["age"] == 1 and cache["ivs_full"] is ivs
+
+
+def test_scale_index_from_the_full_maps_is_the_best_snr_scale():
+    f = _frame(2)
+    cache = {}
+    det = D.detect(f, cache=cache)
+    import cv2
+
+    work = cv2.medianBlur(f, 3).astype(np.float32)
+    ladder = sorted(set(det["scales"]) | {2 * s for s in det["scales"]})
+    blurs = dict(zip(ladder, D._blur_ladder(work, ladder)))
+    b1s = tuple(blurs[s] for s in det["scales"])
+    b2s = tuple(blurs[2 * s] for s in det["scales"])
+    rows, cols = det["rows"], det["cols"]
+    k = D._scale_at_full(b1s, b2s, cache["ivs_full"], 1.0, rows, cols)
+    z = np.array([(b1s[i][rows, cols] - b2s[i][rows, cols]).astype(np.float64) * cache["ivs_full"][i][rows, cols]
+                  for i in range(len(b1s))])
+    assert len(rows) > 10 and np.array_equal(k, np.argmax(z, axis=0))
+    assert np.allclose(z.max(0), det["snr"][:len(rows)], rtol=1e-6)   # the SNR map is float32

@@ -1,0 +1,54 @@
+"""The Gaussian fit's kernels: the pixel integrals' erf and the one-spot least-squares evaluation."""
+import math
+
+import numpy as np
+from scipy.special import erf
+
+from ptrack.image import fit as F
+
+
+def test_erf_from_gauss_within_its_stated_error():
+    z = np.linspace(-6, 6, 4001)
+    got = np.array([F._erf_gauss(v, math.exp(-v * v)) for v in z])
+    assert np.max(np.abs(got - erf(z))) < 1.5e-7
+    assert got[2000] == 0.0 or abs(got[2000]) < 1e-8      # odd: erf(0) = 0
+
+
+def test_pixel_integrals_match_the_exact_erf_differences():
+    # the profile (values and derivatives) against scipy's erf, for widths and offsets the fits meet
+    for s in (0.6, 1.0, 1.7, 3.0, 6.0):
+        for x in (0.0, 0.37, 0.5, 0.93):
+            n0, n = -12, 25
+            e, dx, ds = np.empty(n), np.empty(n), np.empty(n)
+            F._erf_profile(n0, n, x, s, e, dx, ds)
+            edges = np.arange(n0, n0 + n + 1) - 0.5 - x
+            exact = 0.5 * np.diff(erf(edges / (math.sqrt(2) * s)))
+            assert np.max(np.abs(e - exact)) < 2e-7
+            g = np.exp(-edges ** 2 / (2 * s * s)) / (math.sqrt(2 * math.pi) * s)
+            assert np.allclose(dx, -np.diff(g), atol=1e-13)
+            assert np.allclose(ds, -np.diff(edges * g) / s, atol=1e-13)
+
+
+def test_one_spot_least_squares_evaluation_is_the_generic_one_bit_for_bit():
+    rng = np.random.default_rng(3)
+    img = rng.normal(50.0, 4.0, (40, 50)).astype(np.float32)
+    for trial in range(20):
+        half = int(rng.integers(3, 9))
+        r0, c0 = int(rng.integers(0, 40 - 2 * half)), int(rng.integers(0, 50 - 2 * half))
+        n = 2 * half + 1
+        th = np.array([c0 + half + rng.uniform(-1, 1), r0 + half + rng.uniform(-1, 1), rng.uniform(50, 5000),
+                       rng.uniform(-5, 60), rng.uniform(0.7, 3.0)])
+        gain, offset = rng.uniform(0.5, 3.0), rng.uniform(0, 10)
+        out = []
+        for one in (False, True):
+            w = F._work(1, n)
+            J, g = np.zeros((5, 5)), np.zeros(5)
+            if one:
+                f = F._eval_ls1(img, r0, n, c0, n, th, gain, offset, w[0], w[1], J, g, w[10], w[11], w[13], w[14],
+                                w[15], w[16])
+            else:
+                f = F._eval_ls(img, r0, n, c0, n, th, 1, gain, offset, w[0], w[1], J, g, w[10], w[11], w[12], w[13],
+                               w[14], w[15], w[16])
+            out.append((f, J.copy(), g.copy()))
+        assert out[0][0] == out[1][0]
+        assert np.array_equal(out[0][1], out[1][1]) and np.array_equal(out[0][2], out[1][2])
