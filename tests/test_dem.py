@@ -297,3 +297,48 @@ def test_verlet_fused_blow_up_ends_where_the_plain_stepper_ends(case):
     assert a.step == b.step and a.fail_particle == b.fail_particle and a.step < 5003
     for key, v in a.get_state().items():
         assert np.array_equal(v, b.get_state()[key]), key
+
+
+@pytest.mark.parametrize("sort", [True, False])
+@pytest.mark.parametrize("frac", [0.05, 0.3])
+def test_verlet_near_sub_list_is_bit_identical_to_the_whole_list(sort, frac):
+    # the velocity-Verlet stepper's near sub-list (pairs within max(R_i + R_j, cutoff) + margin, re-filtered
+    # when a distance may have shrunk by 0.9 margin): the same state bit for bit as the whole list, with
+    # contacts forming and breaking, rebuilds and re-orderings, and fewer pairs visited per step
+    from sim.dem import P_NEAR_FILTERS, P_NEAR_PAIRS
+
+    a = _sheared_pile(sort)
+    a.guards[9] = frac * a.skin  # G_NEAR
+    b = _sheared_pile(sort)
+    b.guards[9] = 0.0  # off: the whole list
+    refilter = 0
+    for k in (1, 7, 1500, 2500, 3000):
+        assert a.run(k) == b.run(k) == 0
+        st_a, st_b = a.get_state(), b.get_state()
+        for key in st_a:
+            assert np.array_equal(st_a[key], st_b[key]), key
+        assert b.chunk_peaks[P_NEAR_FILTERS] == 0
+        refilter += a.chunk_peaks[P_NEAR_FILTERS]
+        assert a.chunk_peaks[P_NEAR_PAIRS] <= len(a.nbj)
+    assert a.n_builds == b.n_builds > 3 and a.diag[4] > 100 and 50 < a.chunk_peaks[P_NEAR_PAIRS] < len(a.nbj)
+    assert refilter > a.n_builds + 5  # filtered far more often than the list was rebuilt
+
+
+def test_verlet_near_sub_list_is_not_refiltered_while_the_bed_moves_as_one():
+    # the bound on how much a distance shrank uses the velocities relative to the mean: spheres falling
+    # together (no contacts) keep their sub-list; one sphere moving against the others re-filters it
+    from sim.dem import DEMSystem, P_NEAR_FILTERS
+
+    pos, _ = _lattice_gas(64, 1.0, 0.05, 1)
+    pos[:, 2] += 2.0
+    s = DEMSystem(pos, np.tile([0.3, 0.0, -2.0], (64, 1)), np.full(64, 0.05), np.full(64, 1.0),
+                  model=CONTACT_HOOKE, cp=hooke_params(1e5, 0.5), rotation=True, box_length=(1, 1, 4),
+                  periodic=(1, 1, 0), dt=1e-4, skin=0.02, near_margin=0.002)
+    assert s.run(2000) == 0
+    assert s.chunk_peaks[P_NEAR_FILTERS] == 1 + s.n_builds - 1  # the call's start and each rebuild
+    vel = s.vel.copy()
+    vel[0, 0] += 0.5
+    s.vel[:] = vel
+    b0 = s.n_builds
+    assert s.run(2000) == 0
+    assert s.chunk_peaks[P_NEAR_FILTERS] > 1 + (s.n_builds - b0) + 5
