@@ -46,3 +46,19 @@ def test_scale_index_from_the_full_maps_is_the_best_snr_scale():
                   for i in range(len(b1s))])
     assert len(rows) > 10 and np.array_equal(k, np.argmax(z, axis=0))
     assert np.allclose(z.max(0), det["snr"][:len(rows)], rtol=1e-6)   # the SNR map is float32
+
+
+def test_tile_medians_and_mads_are_numpys():
+    rng = np.random.default_rng(4)
+    for th, tw in ((16, 16), (5, 7), (3, 3), (1, 4)):
+        for kind in ("normal", "ties"):
+            x = rng.normal(0, 3, (3 * th, 4 * tw)) if kind == "normal" else rng.integers(0, 5, (3 * th, 4 * tw))
+            sub = x.astype(np.float32)
+            med, mad = D._tile_med_mad(sub, 3, 4, th, tw)
+            for a in range(3):
+                for b in range(4):
+                    t = sub[a * th:(a + 1) * th, b * tw:(b + 1) * tw].astype(np.float64).ravel()
+                    m = np.float32(np.median(t))
+                    assert med[a, b] == m
+                    dev = np.abs(t.astype(np.float32) - m).astype(np.float64)
+                    assert mad[a, b] == np.float32(1.4826 * np.median(dev))

@@ -52,3 +52,26 @@ def test_one_spot_least_squares_evaluation_is_the_generic_one_bit_for_bit():
             out.append((f, J.copy(), g.copy()))
         assert out[0][0] == out[1][0]
         assert np.array_equal(out[0][1], out[1][1]) and np.array_equal(out[0][2], out[1][2])
+
+
+def test_one_spot_poisson_evaluation_is_the_generic_one_bit_for_bit():
+    rng = np.random.default_rng(5)
+    img = rng.poisson(30.0, (40, 50)).astype(np.uint16)
+    for trial in range(20):
+        half = int(rng.integers(3, 9))
+        r0, c0 = int(rng.integers(0, 40 - 2 * half)), int(rng.integers(0, 50 - 2 * half))
+        n = 2 * half + 1
+        th = np.array([c0 + half + rng.uniform(-1, 1), r0 + half + rng.uniform(-1, 1), rng.uniform(50, 5000),
+                       rng.uniform(0.0, 40.0), rng.uniform(0.7, 3.0)])
+        gain, offset, rvar = rng.uniform(0.5, 3.0), rng.uniform(0, 10), rng.uniform(0, 4)
+        out = []
+        for one in (False, True):
+            w = F._work(1, n)
+            J, g = np.zeros((5, 5)), np.zeros(5)
+            if one:
+                f = F._eval_poisson1(img, r0, n, c0, n, th, gain, offset, rvar, w[0], w[1], J, g)
+            else:
+                f = F._eval_poisson(img, r0, n, c0, n, th, 1, gain, offset, rvar, w[0], w[1], J, g, w[9])
+            out.append((f, J.copy(), g.copy()))
+        assert out[0][0] == out[1][0]
+        assert np.array_equal(out[0][1], out[1][1]) and np.array_equal(out[0][2], out[1][2])

@@ -138,10 +138,60 @@ def _blur_ladder(work, sigmas, pool=None):
     return out
 
 
+@nb.njit(cache=True, inline="always")
+def _select(a, k, n):
+    # the k-th smallest of a[:n], in place (quickselect, Hoare partition about a median-of-3 pivot); afterwards
+    # a[:k] holds values <= it
+    lo = 0
+    hi = n - 1
+    while hi > lo:
+        mid = (lo + hi) >> 1
+        if a[mid] < a[lo]:
+            a[mid], a[lo] = a[lo], a[mid]
+        if a[hi] < a[lo]:
+            a[hi], a[lo] = a[lo], a[hi]
+        if a[hi] < a[mid]:
+            a[hi], a[mid] = a[mid], a[hi]
+        p = a[mid]
+        i = lo
+        j = hi
+        while i <= j:
+            while a[i] < p:
+                i += 1
+            while a[j] > p:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            return a[k]
+    return a[k]
+
+
+@nb.njit(cache=True, inline="always")
+def _median_inplace(a, n):
+    # numpy's median of a[:n] (an even count: the mean of the two middle values), reordering a, no copy
+    h = n >> 1
+    upper = _select(a, h, n)
+    if n & 1:
+        return upper
+    lower = a[0]
+    for k in range(1, h):           # the lower middle value: the largest of the h values below the upper one
+        if a[k] > lower:
+            lower = a[k]
+    return (lower + upper) / 2
+
+
 @nb.njit(cache=True)
 def _tile_med_mad(sub, nh, nw, th, tw):
     # median and 1.4826 x median absolute deviation of each th x tw tile of sub (float32, the medians of
-    # an even count average the two middle values, as numpy's); one buffer, no copy of the frame
+    # an even count average the two middle values, as numpy's); one buffer selected in place (numpy's median
+    # in numba copies it and selects twice), no copy of the frame
     med = np.empty((nh, nw), np.float32)
     mad = np.empty((nh, nw), np.float32)
     buf = np.empty(th * tw, np.float64)
@@ -152,11 +202,11 @@ def _tile_med_mad(sub, nh, nw, th, tw):
                 for j in range(b * tw, (b + 1) * tw):
                     buf[n] = sub[i, j]
                     n += 1
-            m = np.float32(np.median(buf))
+            m = np.float32(_median_inplace(buf, n))
             for k in range(n):
                 buf[k] = abs(np.float32(buf[k]) - m)
             med[a, b] = m
-            mad[a, b] = np.float32(1.4826 * np.median(buf))
+            mad[a, b] = np.float32(1.4826 * _median_inplace(buf, n))
     return med, mad
 
 

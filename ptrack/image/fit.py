@@ -367,6 +367,114 @@ def _eval_ls(img, r0, nr, c0, nc, th, K, gain, offset, FX, FY, J, g, Gx, Gy, rro
 
 
 @nb.njit(cache=True)
+def _eval_poisson1(img, r0, nr, c0, nc, th, gain, offset, rvar, FX, FY, J, g):
+    # _eval_poisson for one spot (K = 1), the same operations in the same order (bit-identical), with the score
+    # and the 15 Fisher terms in scalars: the generic per-pixel updates of J through memory cost ~2x the pixels
+    _profiles(th, 1, r0, nr, c0, nc, FX, FY)
+    b = th[3]
+    N = th[2]
+    ex = FX[0]
+    dxf = FX[1]
+    sxf = FX[2]
+    ey = FY[0]
+    dyf = FY[1]
+    syf = FY[2]
+    g0 = 0.0
+    g1 = 0.0
+    g2 = 0.0
+    g3 = 0.0
+    g4 = 0.0
+    j00 = 0.0
+    j01 = 0.0
+    j02 = 0.0
+    j03 = 0.0
+    j04 = 0.0
+    j11 = 0.0
+    j12 = 0.0
+    j13 = 0.0
+    j14 = 0.0
+    j22 = 0.0
+    j23 = 0.0
+    j24 = 0.0
+    j33 = 0.0
+    j34 = 0.0
+    j44 = 0.0
+    f = 0.0
+    rss = 0.0
+    ig = 1.0 / gain
+    for i in range(nr):
+        eyi = ey[i]
+        dyi = dyf[i]
+        syi = syf[i]
+        row = img[r0 + i]
+        for j in range(nc):
+            exj = ex[j]
+            e = exj * eyi
+            mu = b + N * e
+            d0 = N * dxf[j] * eyi
+            d1 = N * exj * dyi
+            d2 = e
+            d4 = N * (sxf[j] * eyi + exj * syi)
+            d = (row[c0 + j] - offset) * ig
+            rss += (d - mu) ** 2
+            m = mu + rvar
+            dd = d + rvar
+            if m < 1e-9:
+                m = 1e-9
+            if dd > 0:
+                f += dd * math.log(m) - m
+            else:
+                f -= m
+            wgt = 1.0 / m
+            res = dd * wgt - 1.0
+            g0 += res * d0
+            g1 += res * d1
+            g2 += res * d2
+            g3 += res
+            g4 += res * d4
+            wa = wgt * d0
+            j00 += wa * d0
+            j01 += wa * d1
+            j02 += wa * d2
+            j03 += wa
+            j04 += wa * d4
+            wa = wgt * d1
+            j11 += wa * d1
+            j12 += wa * d2
+            j13 += wa
+            j14 += wa * d4
+            wa = wgt * d2
+            j22 += wa * d2
+            j23 += wa
+            j24 += wa * d4
+            j33 += wgt
+            j34 += wgt * d4
+            wa = wgt * d4
+            j44 += wa * d4
+    g[0] = g0
+    g[1] = g1
+    g[2] = g2
+    g[3] = g3
+    g[4] = g4
+    J[0, 0] = j00
+    J[0, 1] = J[1, 0] = j01
+    J[0, 2] = J[2, 0] = j02
+    J[0, 3] = J[3, 0] = j03
+    J[0, 4] = J[4, 0] = j04
+    J[1, 1] = j11
+    J[1, 2] = J[2, 1] = j12
+    J[1, 3] = J[3, 1] = j13
+    J[1, 4] = J[4, 1] = j14
+    J[2, 2] = j22
+    J[2, 3] = J[3, 2] = j23
+    J[2, 4] = J[4, 2] = j24
+    J[3, 3] = j33
+    J[3, 4] = J[4, 3] = j34
+    J[4, 4] = j44
+    return f, rss
+
+
+@nb.njit(cache=True)
 def _eval_ls1(img, r0, nr, c0, nc, th, gain, offset, FX, FY, J, g, Gx, Gy, TC, TA, TB, TP):
     # _eval_ls for one spot (K = 1), the same operations in the same order (bit-identical), with the residual's
     # row sums in scalars: the generic loops over the K spots and the Q column functions cost ~2x the pixels
@@ -435,13 +543,16 @@ def _eval_ls1(img, r0, nr, c0, nc, th, gain, offset, FX, FY, J, g, Gx, Gy, TC, T
     return -0.5 * rss, rss
 
 
-#: one-spot least-squares fits by :func:`_eval_ls1` (False: the generic :func:`_eval_ls`; the same numbers)
+#: one-spot fits by :func:`_eval_ls1` and :func:`_eval_poisson1` (False: the generic :func:`_eval_ls` and
+#: :func:`_eval_poisson`; the same numbers)
 _LS1 = True
 
 
 @nb.njit(cache=True, inline="always")
 def _evaluate(img, r0, nr, c0, nc, th, K, gain, offset, rvar, poisson, w, J, g):
     if poisson:
+        if K == 1 and _LS1:
+            return _eval_poisson1(img, r0, nr, c0, nc, th, gain, offset, rvar, w[0], w[1], J, g)
         return _eval_poisson(img, r0, nr, c0, nc, th, K, gain, offset, rvar, w[0], w[1], J, g, w[9])
     if K == 1 and _LS1:
         return _eval_ls1(img, r0, nr, c0, nc, th, gain, offset, w[0], w[1], J, g, w[10], w[11], w[13], w[14], w[15],
