@@ -62,3 +62,34 @@ def test_tile_medians_and_mads_are_numpys():
                     assert med[a, b] == m
                     dev = np.abs(t.astype(np.float32) - m).astype(np.float64)
                     assert mad[a, b] == np.float32(1.4826 * np.median(dev))
+
+
+def test_ring_evidence_dip_tests_on_the_frame_are_the_mosaic_ones():
+    from ptrack.image import rings as RG
+    from ptrack.image.radial import has_dip
+
+    rng = np.random.default_rng(6)
+    H, W, h = 90, 120, 10
+    yy, xx = np.mgrid[:H, :W]
+    frame = rng.poisson(40.0, (H, W)).astype(np.float64)
+    # dark-ringed bright spots (dips) and plain spots, some at the border (patches repeat the edge)
+    centres = [(5, 7), (45, 60), (80, 110), (30, 20), (60, 95), (2, 118)]
+    for k, (r, c) in enumerate(centres):
+        d2 = (yy - r) ** 2 + (xx - c) ** 2
+        frame += 400 * np.exp(-d2 / 4.0) - (150 * np.exp(-(np.sqrt(d2) - 5.0) ** 2 / 2.0) if k % 2 else 0)
+    frame = np.clip(frame, 0, None).astype(np.uint16)
+    bg = np.full((H, W), 40.0, np.float32) + rng.normal(0, 0.5, (H, W)).astype(np.float32)
+    rows = np.array([c[0] for c in centres] + list(rng.integers(0, H, 30)), np.int64)
+    cols = np.array([c[1] for c in centres] + list(rng.integers(0, W, 30)), np.int64)
+    noise = np.full(len(rows), 6.3)
+    for sign in (1.0, -1.0):
+        m = len(rows)
+        mosaic = np.empty((2 * h + 1, (2 * h + 1) * m), np.float32)
+        RG._patch_mosaic(frame, bg, rows, cols, h, sign, mosaic)
+        ref = has_dip(mosaic, h + (2 * h + 1) * np.arange(m, dtype=float), np.full(m, float(h)), noise,
+                      np.full(m, float(h)))
+        got = np.zeros(m, np.bool_)
+        RG._patch_dips(frame, bg, rows, cols, h, sign, noise, 4.0, got)
+        assert np.array_equal(got, ref)
+        if sign > 0:
+            assert got[[1, 3]].all()     # the ringed ones away from the corner

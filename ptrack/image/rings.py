@@ -407,6 +407,50 @@ def _patch_mosaic(frame, background, rows, cols, h, sign, out):
                 out[i, k * n + j] = sg * (np.float32(frame[r, c]) - background[r, c])
 
 
+#: ring_evidence's dip tests read the frame directly (:func:`_patch_dips`; False: through a mosaic of patches
+#: and :func:`ptrack.image.radial.has_dip`, the same result)
+_DIRECT_DIP = True
+
+
+@nb.njit(cache=True)
+def _patch_dips(frame, background, rows, cols, h, sign, noise, k_sig, out):
+    # has_dip on each (2h + 1)^2 patch of sign * (frame - background) about (row, col), radius h, centre on the
+    # pixel, pixels beyond the border repeating the edge: the mosaic's values (float32) summed in its order,
+    # the same annuli and test as radial._dip_all, with no patch written out
+    H, W = frame.shape
+    sg = np.float32(sign)
+    n = 2 * h + 1
+    sums = np.zeros(h + 1)
+    cnt = np.zeros(h + 1)
+    # every patch is centred on its pixel: one table of the annulus of each offset
+    ann = np.empty((n, n), np.int64)
+    for i in range(n):
+        for j in range(n):
+            ann[i, j] = int(math.sqrt(float(j - h) ** 2 + float(i - h) ** 2) + 0.5)
+    for k in range(rows.shape[0]):
+        sums[:] = 0.0
+        cnt[:] = 0.0
+        for i in range(n):
+            r = min(max(rows[k] + i - h, 0), H - 1)
+            for j in range(n):
+                b = ann[i, j]
+                if b <= h:
+                    c = min(max(cols[k] + j - h, 0), W - 1)
+                    sums[b] += sg * (np.float32(frame[r, c]) - background[r, c])
+                    cnt[b] += 1
+        found = False
+        for b in range(2, h - 1):
+            if cnt[b] == 0 or cnt[b + 2] == 0:
+                continue
+            mm = sums[b] / cnt[b]
+            se = noise[k] / math.sqrt(cnt[b])
+            outside = max(sums[b + 1] / max(cnt[b + 1], 1.0), sums[b + 2] / cnt[b + 2])
+            if mm < -k_sig * se and mm < outside - k_sig * se and mm < sums[0] / max(cnt[0], 1.0) - k_sig * se:
+                found = True
+                break
+        out[k] = found
+
+
 def ring_evidence(b1s, b2s, sign, frame, background, noise_pix, rows, cols, kk, min_count: int = 3,
                   min_fraction: float = 0.2, max_dip_tests: int = 64):
     """Whether the blob candidates of a frame say it holds rings (so the ring maps are worth their cost).
@@ -454,9 +498,14 @@ def ring_evidence(b1s, b2s, sign, frame, background, noise_pix, rows, cols, kk, 
     m = min(n, int(max_dip_tests))
     sel = np.linspace(0, n - 1, m).astype(np.int64)
     h = 10
-    mosaic = np.empty((2 * h + 1, (2 * h + 1) * m), np.float32)
-    _patch_mosaic(np.ascontiguousarray(frame), np.ascontiguousarray(background, np.float32), rows[sel], cols[sel],
-                  h, float(sign), mosaic)
-    dip = has_dip(mosaic, h + (2 * h + 1) * np.arange(m, dtype=float), np.full(m, float(h)),
-                  noise_pix[rows[sel], cols[sel]], np.full(m, float(h)))
+    if not _DIRECT_DIP:
+        mosaic = np.empty((2 * h + 1, (2 * h + 1) * m), np.float32)
+        _patch_mosaic(np.ascontiguousarray(frame), np.ascontiguousarray(background, np.float32), rows[sel],
+                      cols[sel], h, float(sign), mosaic)
+        dip = has_dip(mosaic, h + (2 * h + 1) * np.arange(m, dtype=float), np.full(m, float(h)),
+                      noise_pix[rows[sel], cols[sel]], np.full(m, float(h)))
+    else:
+        dip = np.zeros(m, np.bool_)
+        _patch_dips(np.ascontiguousarray(frame), np.ascontiguousarray(background, np.float32), rows[sel], cols[sel],
+                    h, float(sign), np.ascontiguousarray(noise_pix[rows[sel], cols[sel]], np.float64), 4.0, dip)
     return bool(dip.sum() >= max(min_count, min_fraction * m))
