@@ -75,3 +75,52 @@ def test_one_spot_poisson_evaluation_is_the_generic_one_bit_for_bit():
             out.append((f, J.copy(), g.copy()))
         assert out[0][0] == out[1][0]
         assert np.array_equal(out[0][1], out[1][1]) and np.array_equal(out[0][2], out[1][2])
+
+
+def test_nearest_other_detection_is_the_kd_tree_one():
+    from scipy.spatial import cKDTree
+
+    from ptrack.image.locate import _nearest_other
+
+    rng = np.random.default_rng(7)
+    for n in (2, 3, 50, 600):
+        rows = rng.integers(0, 300, n)
+        cols = rng.integers(0, 400, n)
+        if n > 3:
+            rows[1], cols[1] = rows[0], cols[0]          # a duplicate: distance 0
+        pts = np.c_[cols, rows].astype(float)
+        ref = cKDTree(pts).query(pts, k=2)[0][:, 1]
+        assert np.allclose(_nearest_other(rows, cols), ref, rtol=1e-15, atol=0)
+    assert np.isinf(_nearest_other(np.array([3]), np.array([4]))).all()
+
+
+def _neighbour_tasks_by_kd_tree(rows, cols, radius, max_group):
+    # the groups as the k-d tree forms them (the reference of _neighbour_tasks)
+    from scipy.spatial import cKDTree
+
+    n = len(rows)
+    pts = np.c_[cols, rows].astype(float)
+    d, idx = cKDTree(pts).query(pts, k=min(max_group, n), distance_upper_bound=radius)
+    has = np.isfinite(d[:, 1])
+    keys = np.sort(np.where(np.isfinite(d), idx, n)[has], axis=1)
+    return has, {tuple(k[k < n]) for k in keys}
+
+
+def test_joint_fit_groups_are_the_kd_tree_ones():
+    rng = np.random.default_rng(8)
+    for trial in range(30):
+        n = int(rng.integers(2, 300))
+        side = int(rng.integers(20, 400))
+        rows, cols = rng.integers(0, side, n), rng.integers(0, side, n)
+        radius = float(rng.choice([5.0, 7.82, 10.0, 3.0]))
+        for max_group in (2, 3, 5):
+            grouped, ptr, members, report = F._neighbour_tasks(rows, cols, radius, max_group)
+            has, groups = _neighbour_tasks_by_kd_tree(rows, cols, radius, max_group)
+            assert np.array_equal(grouped, has)
+            got = {tuple(members[ptr[t]:ptr[t + 1]]) for t in range(len(ptr) - 1)}
+            crowded = any(len(g) == max_group for g in groups)
+            if not crowded:          # (crowded: which of equally distant neighbours is nearest is the tree's choice)
+                assert got == groups
+            # every grouped spot is reported exactly once, from a task holding it
+            rep = members[report]
+            assert sorted(rep.tolist()) == sorted(np.nonzero(has)[0].tolist())

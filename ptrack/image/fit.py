@@ -936,6 +936,39 @@ def _split_spots(img, rows, cols, params, cand, half, sigma0, gain, offset, rvar
             var[k, m, 4] = vv[7]
 
 
+@nb.njit(cache=True)
+def _within_radius(x, y, order, radius, k):
+    # each point with all the others closer than radius (strictly, as cKDTree's distance_upper_bound), itself
+    # included, as a sorted row of k indices padded with n; crowded: some point has more than k - 1 such
+    # neighbours (then its nearest k - 1 are wanted, which the caller takes from a k-d tree). The points are
+    # sorted by y (order) and searched up and down the sorted list while the y gap is within radius.
+    n = x.shape[0]
+    keys = np.full((n, k), n, np.int64)
+    r2 = radius * radius
+    crowded = False
+    for a in range(n):
+        ia = order[a]
+        m = 1
+        keys[ia, 0] = ia
+        for step in (1, -1):
+            b = a + step
+            while 0 <= b < n:
+                ib = order[b]
+                dy = y[ib] - y[ia]
+                if dy * dy >= r2:
+                    break
+                dx = x[ib] - x[ia]
+                if math.sqrt(dx * dx + dy * dy) < radius:
+                    if m < k:
+                        keys[ia, m] = ib
+                    m += 1
+                b += step
+        if m > k:
+            crowded = True
+        keys[ia, :min(m, k)].sort()
+    return keys, crowded
+
+
 def _neighbour_tasks(rows, cols, radius: float, max_group: int):
     """Groups for joint fitting: each spot with neighbours closer than ``radius`` (px) is fitted together
     with its nearest ``max_group - 1`` of them; identical groups are fitted once.
@@ -949,15 +982,21 @@ def _neighbour_tasks(rows, cols, radius: float, max_group: int):
     empty = (grouped, np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros(0, np.bool_))
     if n < 2 or max_group < 2:
         return empty
-    pts = np.c_[cols, rows].astype(float)
-    d, idx = cKDTree(pts, balanced_tree=False, compact_nodes=False).query(pts, k=min(max_group, n),
-                                                                           distance_upper_bound=radius)
-    has = np.isfinite(d[:, 1])
+    kq = min(max_group, n)
+    y = np.asarray(rows, np.float64)
+    keys, crowded = _within_radius(np.asarray(cols, np.float64), y, np.argsort(y, kind="stable"),
+                                   float(radius), kq)
+    if crowded:
+        # a spot with more neighbours in reach than a group holds: its nearest ones by the k-d tree
+        pts = np.c_[cols, rows].astype(float)
+        d, idx = cKDTree(pts, balanced_tree=False, compact_nodes=False).query(pts, k=kq, distance_upper_bound=radius)
+        idx = np.where(np.isfinite(d), idx, n)              # missing neighbours -> n (sorted last)
+        keys = np.sort(idx, axis=1)
+    has = keys[:, 1] < n
     if not has.any():
         return empty
     grouped[has] = True
-    idx = np.where(np.isfinite(d), idx, n)[has]            # missing neighbours -> n (sorted last)
-    keys = np.sort(idx, axis=1)
+    keys = keys[has]
     K = keys.shape[1]
     if (n + 1.0) ** K < 2.0 ** 62:
         # each sorted group as one integer in base n + 1 (same order as the rows): a 1-D unique is ~10x

@@ -326,14 +326,38 @@ def _ring_like(sub, rows, cols, scale, noise, out):
         out[k] = core < mid or neg < -4.0 * noise / math.sqrt(max(nn, 1))
 
 
+@nb.njit(cache=True)
+def _nn_sweep(x, y, order):
+    # distance to the nearest other point: the points sorted by y (order), each searched up and down the sorted
+    # list until the y gap alone exceeds the best distance so far (exact; ~20 us for 600 points, where a
+    # cKDTree build and query costs ~100 us of fixed overhead)
+    n = x.shape[0]
+    out = np.empty(n)
+    for a in range(n):
+        ia = order[a]
+        best2 = np.inf
+        for step in (1, -1):
+            b = a + step
+            while 0 <= b < n:
+                ib = order[b]
+                dy = y[ib] - y[ia]
+                if dy * dy >= best2:
+                    break
+                dx = x[ib] - x[ia]
+                d2 = dx * dx + dy * dy
+                if d2 < best2:
+                    best2 = d2
+                b += step
+        out[ia] = math.sqrt(best2)
+    return out
+
+
 def _nearest_other(rows, cols):
     """Distance (px) from each detection to the nearest other one (inf when alone)."""
     if len(rows) < 2:
         return np.full(len(rows), np.inf)
-    from scipy.spatial import cKDTree
-
-    pts = np.c_[cols, rows].astype(float)
-    return cKDTree(pts, balanced_tree=False, compact_nodes=False).query(pts, k=2)[0][:, 1]
+    y = np.asarray(rows, np.float64)
+    return _nn_sweep(np.asarray(cols, np.float64), y, np.argsort(y, kind="stable"))
 
 
 def _locate_multiscale(frame, snr=None, gain=1.0, offset=0.0, read_noise=0.0, brightfield=None, median=True,
