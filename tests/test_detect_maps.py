@@ -93,3 +93,10 @@ def test_ring_evidence_dip_tests_on_the_frame_are_the_mosaic_ones():
         assert np.array_equal(got, ref)
         if sign > 0:
             assert got[[1, 3]].all()     # the ringed ones away from the corner
+
+
+def test_noise_map_median_from_a_sub_sample_is_the_full_median():
+    det = D.detect(_frame(3, shape=(300, 420)))
+    rn = det["noise_map"]
+    assert det["noise_map_median"] == float(np.median(rn[::4, ::4]))
+    assert abs(det["noise_map_median"] / float(np.median(rn)) - 1) < 2e-3

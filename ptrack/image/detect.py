@@ -77,6 +77,8 @@ _IVS_BLOCK_BYTES = 1 << 20
 # the full-size inverse-noise maps of a cache are written into the previous map's array (kept in the blur pool):
 # a fresh 11 MB array per map measurement costs its page faults (~4 ms per 640 x 424 map against ~1 ms to fill)
 _POOL_IVS = True
+# the median of the frame's noise map is taken over every this many pixels of each axis (1: all)
+_RN_MEDIAN_STEP = 4
 # surround of the band-pass, in units of the scale: 2 = two rungs of the sqrt(2) ladder, so the
 # ladder's blurs serve as each other's surrounds (n + 2 blurs for n scales)
 _SURROUND = 2.0
@@ -650,7 +652,7 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         and ``snr``, ``signal`` those of its circle mean),
         ``scales``, ``background_map`` and ``noise_map`` (the frame's local
         median and noise, counts, full size), ``noise_map_median`` (the
-        median of ``noise_map``, counts).
+        median of ``noise_map`` over every 4th pixel of each axis, counts).
     """
     import cv2
 
@@ -700,8 +702,10 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         rb, rn = noise_maps(f32,
                             tile=max(int(tile), int(math.sqrt(H * W / 256.0))), step=2)
         # the median of the frame's noise map (a full-frame median: measured once per map, for the level test
-        # below and the localiser, see the returned noise_map_median)
-        rn_median = float(np.median(rn))
+        # below and the localiser, see the returned noise_map_median), over every _RN_MEDIAN_STEP-th pixel
+        # of each axis: the map is bilinear between tile centres >= 32 px apart, so the sub-sample's median is
+        # the full one's to ~1e-4 (a full-frame median costs 2.5 ms on 640 x 424, 40 ms on 2048^2)
+        rn_median = float(np.median(rn[::_RN_MEDIAN_STEP, ::_RN_MEDIAN_STEP]))
         if cache is not None:
             cache.clear()
             cache.update(blur_pool=pool, key=key, age=0, level=level, level_noise=1.25 * rn_median / math.sqrt(work[::8, ::8].size),
