@@ -100,3 +100,51 @@ def test_noise_map_median_from_a_sub_sample_is_the_full_median():
     rn = det["noise_map"]
     assert det["noise_map_median"] == float(np.median(rn[::4, ::4]))
     assert abs(det["noise_map_median"] / float(np.median(rn)) - 1) < 2e-3
+
+
+def _ring_test_reference(frame, bg, noise, sign, r0, c0, s):
+    # _ring_test's rule written out per pixel (atan2 and sqrt at each one)
+    import math
+
+    h, w = frame.shape
+    half = int(math.ceil(2.2 * s)) + 1
+    sec, nsec, core, ncore = np.zeros(8), np.zeros(8), 0.0, 0
+    for r in range(max(0, r0 - half), min(h, r0 + half + 1)):
+        for c in range(max(0, c0 - half), min(w, c0 + half + 1)):
+            d = math.sqrt((r - r0) ** 2 + (c - c0) ** 2)
+            v = sign * (frame[r, c] - bg[r, c])
+            if d <= max(0.5 * s, 1.0):
+                core += v
+                ncore += 1
+            elif 0.7 * s <= d <= 2.2 * s:
+                a = int((math.atan2(r - r0, c - c0) + math.pi) / (2 * math.pi) * 8) % 8
+                sec[a] += v
+                nsec[a] += 1
+    if ncore == 0 or nsec.min() == 0:
+        return False
+    m = sec / nsec
+    se = noise[r0, c0] / math.sqrt(nsec.min())
+    return bool(m.min() > core / ncore + 3.0 * se and m.min() > 0.4 * m.max() and m.max() > 0)
+
+
+def test_ring_test_with_offset_tables_is_the_per_pixel_rule():
+    rng = np.random.default_rng(9)
+    H, W = 80, 100
+    yy, xx = np.mgrid[:H, :W]
+    img = rng.normal(20.0, 2.0, (H, W))
+    for (r, c) in ((20, 20), (50, 70), (3, 95)):              # rings (one at the border)
+        img += 60.0 * np.exp(-(np.hypot(yy - r, xx - c) - 4.0) ** 2 / 2.0)
+    img = img.astype(np.float32)
+    bg = np.full((H, W), 20.0, np.float32)
+    noise = np.full((H, W), 2.0, np.float32)
+    rows = np.r_[20, 50, 3, rng.integers(0, H, 40)].astype(np.int64)
+    cols = np.r_[20, 70, 95, rng.integers(0, W, 40)].astype(np.int64)
+    scale = rng.choice([2.0, 2.83, 4.0], len(rows))
+    for sign in (1.0, -1.0):
+        out = np.zeros(len(rows), np.bool_)
+        D._ring_test(img, bg, noise, sign, rows, cols, scale, out)
+        ref = [_ring_test_reference(img, bg, noise, sign, r, c, s) for r, c, s in zip(rows, cols, scale)]
+        assert out.tolist() == ref
+    out = np.zeros(3, np.bool_)
+    D._ring_test(img, bg, noise, 1.0, rows[:3], cols[:3], np.full(3, 2.0), out)
+    assert out[:2].all()

@@ -124,3 +124,38 @@ def test_joint_fit_groups_are_the_kd_tree_ones():
             # every grouped spot is reported exactly once, from a task holding it
             rep = members[report]
             assert sorted(rep.tolist()) == sorted(np.nonzero(has)[0].tolist())
+
+
+def test_ring_like_with_an_offset_table_is_the_per_pixel_rule():
+    from ptrack.image.locate import _ring_like
+
+    rng = np.random.default_rng(10)
+    H, W = 70, 90
+    yy, xx = np.mgrid[:H, :W]
+    sub = rng.normal(0.0, 2.0, (H, W))
+    sub += 50 * np.exp(-((yy - 30) ** 2 + (xx - 40) ** 2) / 4.0) - 20 * np.exp(-(np.hypot(yy - 30, xx - 40) - 5) ** 2)
+    sub = sub.astype(np.float32)
+    rows = np.r_[30, rng.integers(0, H, 40)].astype(np.int64)
+    cols = np.r_[40, rng.integers(0, W, 40)].astype(np.int64)
+    scale = rng.uniform(1.0, 4.0, len(rows))
+    out = np.zeros(len(rows), np.bool_)
+    _ring_like(sub, rows, cols, scale, 2.0, out)
+    for k in range(len(rows)):
+        s, r0, c0 = scale[k], rows[k], cols[k]
+        half = int(math.ceil(3.0 * s)) + 1
+        rs = np.arange(max(0, r0 - half), min(H, r0 + half + 1))
+        cs = np.arange(max(0, c0 - half), min(W, c0 + half + 1))
+        sums = np.zeros(3)
+        cnt = np.zeros(3)
+        for r in rs:                              # the kernel's rule, in its summation order
+            for c in cs:
+                d = math.sqrt((r - r0) ** 2 + (c - c0) ** 2)
+                band = 0 if d <= max(1.0, 0.6 * s) else 1 if s <= d <= 2 * s else 2 if 2 * s < d <= 3 * s else -1
+                if band >= 0:
+                    sums[band] += sub[r, c]
+                    cnt[band] += 1
+        core, mid = sums[0] / max(cnt[0], 1), sums[1] / max(cnt[1], 1)
+        outer = sums[2] / max(cnt[2], 1)
+        nn = cnt[1] if mid < outer else cnt[2]
+        assert out[k] == (core < mid or min(mid, outer) < -4.0 * 2.0 / math.sqrt(max(nn, 1)))
+    assert out[0]

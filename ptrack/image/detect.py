@@ -497,6 +497,18 @@ def _ring_test(frame, bgmap, noise, sign, rows, cols, scale, out):
     # of the brightest. Two neighbouring spots seen together at a coarse scale have a dip between
     # them too, but only two bright sectors; a ring has all eight.
     h, w = frame.shape
+    # distance and sector of every integer offset (the same formulas as per pixel, computed once per call: the
+    # atan2 and sqrt of each window pixel cost more than the test)
+    hmax = 0
+    for k in range(rows.shape[0]):
+        hmax = max(hmax, int(math.ceil(2.2 * scale[k])) + 1)
+    m = 2 * hmax + 1
+    dist = np.empty((m, m))
+    sect = np.empty((m, m), np.int64)
+    for i in range(m):
+        for j in range(m):
+            dist[i, j] = math.sqrt((i - hmax) ** 2 + (j - hmax) ** 2)
+            sect[i, j] = int((math.atan2(i - hmax, j - hmax) + math.pi) / (2 * math.pi) * 8) % 8
     for k in range(rows.shape[0]):
         s = scale[k]
         r0 = rows[k]
@@ -508,13 +520,13 @@ def _ring_test(frame, bgmap, noise, sign, rows, cols, scale, out):
         ncore = 0
         for r in range(max(0, r0 - half), min(h, r0 + half + 1)):
             for c in range(max(0, c0 - half), min(w, c0 + half + 1)):
-                d = math.sqrt((r - r0) ** 2 + (c - c0) ** 2)
+                d = dist[r - r0 + hmax, c - c0 + hmax]
                 v = sign * (frame[r, c] - bgmap[r, c])
                 if d <= max(0.5 * s, 1.0):
                     core += v
                     ncore += 1
                 elif 0.7 * s <= d <= 2.2 * s:
-                    a = int((math.atan2(r - r0, c - c0) + math.pi) / (2 * math.pi) * 8) % 8
+                    a = sect[r - r0 + hmax, c - c0 + hmax]
                     sec[a] += v
                     nsec[a] += 1
         if ncore == 0 or nsec.min() == 0:

@@ -296,6 +296,15 @@ def _ring_like(sub, rows, cols, scale, noise, out):
     # fainter than the annulus around it (a hole: a ring) or when an annulus of the opposite sign
     # surrounds it beyond 4 noise standard errors (a bright centre in a dark ring, or the reverse)
     h, w = sub.shape
+    # the distance of every integer offset, computed once per call (the same formula as per pixel)
+    hmax = 0
+    for k in range(rows.shape[0]):
+        hmax = max(hmax, int(math.ceil(3.0 * scale[k])) + 1)
+    m = 2 * hmax + 1
+    dist = np.empty((m, m))
+    for i in range(m):
+        for j in range(m):
+            dist[i, j] = math.sqrt((i - hmax) ** 2 + (j - hmax) ** 2)
     for k in range(rows.shape[0]):
         s = scale[k]
         rc = max(1.0, 0.6 * s)
@@ -308,7 +317,7 @@ def _ring_like(sub, rows, cols, scale, noise, out):
         no = 0
         for r in range(max(0, rows[k] - half), min(h, rows[k] + half + 1)):
             for c in range(max(0, cols[k] - half), min(w, cols[k] + half + 1)):
-                d = math.sqrt((r - rows[k]) ** 2 + (c - cols[k]) ** 2)
+                d = dist[r - rows[k] + hmax, c - cols[k] + hmax]
                 v = sub[r, c]
                 if d <= rc:
                     core += v
