@@ -66,9 +66,10 @@ FALSE_ALARM_RATE = 1e-6
 RING_RATE_SHARE = 0.5
 #: Scale (px) reported for a ring of radius R found by the ring maps: R x this
 RING_SCALE_PER_RADIUS = 0.4
-# largest full-size inverse-noise maps (bytes, all scales, float32) kept in the cache (640 x 424: 5.4 MB, faster
-# than blocks; 1024^2: 21 MB, slower than blocks); larger frames interpolate them in blocks of rows for each map
-_FULL_IVS_BYTES = 8 << 20
+# largest full-size inverse-noise maps (bytes, all scales, float32) kept in the cache (640 x 424: 5.4 MB; 1024^2:
+# 21 MB, 11 % of the frame time faster than blocks; 2048^2: 84 MB, no faster); larger frames interpolate them in
+# blocks of rows for each frame (interpolating inside the best-over-scales pass instead was no faster)
+_FULL_IVS_BYTES = 32 << 20
 #: full-size inverse-noise maps in float32 by cv2.resize (False: float64 by :func:`_inverse_noise_rows`, 4x the
 #: time to make and 1.33x the bytes the best-over-scales pass reads per pixel and scale)
 _IVS32 = True
