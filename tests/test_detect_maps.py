@@ -148,3 +148,22 @@ def test_ring_test_with_offset_tables_is_the_per_pixel_rule():
     out = np.zeros(3, np.bool_)
     D._ring_test(img, bg, noise, 1.0, rows[:3], cols[:3], np.full(3, 2.0), out)
     assert out[:2].all()
+
+
+def test_fast_median_is_numpys():
+    from ptrack.image.preprocess import fast_median
+
+    rng = np.random.default_rng(11)
+    for dtype in (np.float32, np.float64):
+        for n in (1, 2, 3, 4, 5, 10, 11, 255, 256, 4096):
+            for kind in ("normal", "ties"):
+                a = rng.normal(3, 2, n) if kind == "normal" else rng.integers(0, 4, n).astype(float)
+                a = a.astype(dtype)
+                keep = a.copy()
+                ref = float(np.median(a))
+                assert fast_median(a) == ref and fast_median(a.reshape(1, -1)[:, ::1]) == ref
+                assert np.array_equal(a, keep)          # the input is not reordered
+    b = np.array([1.0, np.nan, 2.0])
+    assert np.isnan(fast_median(b))
+    assert fast_median(np.arange(10, dtype=np.float32).reshape(2, 5)[:, ::2]) == float(np.median(
+        np.arange(10, dtype=np.float32).reshape(2, 5)[:, ::2]))

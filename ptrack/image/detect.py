@@ -48,6 +48,7 @@ import numpy as np
 
 from ..errors import UserError
 from .peaks import local_maxima
+from .preprocess import _select, fast_median
 from .rings import RING_RADII, ring_evidence, ring_maps_candidates, ring_scale
 
 __all__ = ["DEFAULT_SCALES", "FALSE_ALARM_RATE", "MAP_REFRESH", "bandpass", "noise_maps", "false_alarm_threshold",
@@ -142,41 +143,6 @@ def _blur_ladder(work, sigmas, pool=None):
 
 
 @nb.njit(cache=True, inline="always")
-def _select(a, k, n):
-    # the k-th smallest of a[:n], in place (quickselect, Hoare partition about a median-of-3 pivot); afterwards
-    # a[:k] holds values <= it
-    lo = 0
-    hi = n - 1
-    while hi > lo:
-        mid = (lo + hi) >> 1
-        if a[mid] < a[lo]:
-            a[mid], a[lo] = a[lo], a[mid]
-        if a[hi] < a[lo]:
-            a[hi], a[lo] = a[lo], a[hi]
-        if a[hi] < a[mid]:
-            a[hi], a[mid] = a[mid], a[hi]
-        p = a[mid]
-        i = lo
-        j = hi
-        while i <= j:
-            while a[i] < p:
-                i += 1
-            while a[j] > p:
-                j -= 1
-            if i <= j:
-                a[i], a[j] = a[j], a[i]
-                i += 1
-                j -= 1
-        if k <= j:
-            hi = j
-        elif k >= i:
-            lo = i
-        else:
-            return a[k]
-    return a[k]
-
-
-@nb.njit(cache=True, inline="always")
 def _median_inplace(a, n):
     # numpy's median of a[:n] (an even count: the mean of the two middle values), reordering a, no copy
     h = n >> 1
@@ -256,7 +222,7 @@ def noise_maps(img, tile: int = 64, step: int = 2, what: str = "both", shape=Non
 
         mad = _cv2.blur(mad, (3, 3), borderType=_cv2.BORDER_REPLICATE)
     pos = mad[mad > 0]
-    floor = float(np.median(pos)) * 0.25 if pos.size else 1e-6
+    floor = fast_median(pos) * 0.25 if pos.size else 1e-6
     mad = np.maximum(mad, max(floor, 1e-6))
     if what == "grid":
         return np.ascontiguousarray(1.0 / mad, np.float32)
@@ -690,7 +656,7 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
     # frame to frame: with a cache they are measured on one frame and reused for the next ones (see
     # MAP_REFRESH), unless the frame's background level has moved
     key = (H, W, scales, int(tile), bool(median))
-    level = float(np.median(work[::8, ::8]))
+    level = fast_median(work[::8, ::8])
     c = cache if cache is not None else {}
     fresh = (c.get("key") != key or c.get("age", MAP_REFRESH) >= MAP_REFRESH
              or abs(level - c["level"]) > 3.0 * c["level_noise"] + 0.01 * abs(c["level"]))
@@ -709,7 +675,7 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
             bsub = blurs[s][::st, ::st] - blurs[_SURROUND * s][::st, ::st]
             inv = noise_maps(bsub, tile=t_side, step=st, what="grid", shape=(H, W))
             if noise0 is None:
-                noise0 = float(1.0 / np.median(inv))
+                noise0 = float(1.0 / np.float32(fast_median(inv)))
             invs.append(inv)
         # background and noise of the frame itself (the skew correction; the localiser's background)
         rb, rn = noise_maps(f32,
@@ -718,7 +684,7 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         # below and the localiser, see the returned noise_map_median), over every _RN_MEDIAN_STEP-th pixel
         # of each axis: the map is bilinear between tile centres >= 32 px apart, so the sub-sample's median is
         # the full one's to ~1e-4 (a full-frame median costs 2.5 ms on 640 x 424, 40 ms on 2048^2)
-        rn_median = float(np.median(rn[::_RN_MEDIAN_STEP, ::_RN_MEDIAN_STEP]))
+        rn_median = fast_median(rn[::_RN_MEDIAN_STEP, ::_RN_MEDIAN_STEP])
         if cache is not None:
             cache.clear()
             cache.update(blur_pool=pool, key=key, age=0, level=level, level_noise=1.25 * rn_median / math.sqrt(work[::8, ::8].size),

@@ -29,6 +29,8 @@ import math
 import numba as nb
 import numpy as np
 
+from .preprocess import fast_median
+
 __all__ = ["fit_spots", "mortensen_sigma", "cramer_rao_bound"]
 
 _SQRT2 = math.sqrt(2.0)
@@ -1106,7 +1108,7 @@ def fit_spots(img, rows, cols, sigma: float, gain: float = 1.0, offset: float = 
         # "wide" relative to the spots' own typical width (median over the isolated fits, when there are
         # enough), not the starting width: a start off by 20 % must not send every spot to the split test
         iso = ok & ~grouped
-        ref = float(np.median(p[iso, 4])) if iso.sum() >= 10 else float(sigma)
+        ref = fast_median(p[iso, 4]) if iso.sum() >= 10 else float(sigma)
         cand = np.nonzero(ok & ~grouped & ((p[:, 4] > split_width * ref) | (ecc > split_ecc)))[0]
         if len(cand):
             out = np.zeros((len(cand), 2, 5))

@@ -16,7 +16,7 @@ from ..errors import UserError
 from .fit import fit_spots
 from .peaks import _default_separation, detect_raw, find_peaks
 from .detect import FALSE_ALARM_RATE, detect
-from .preprocess import median3, noise_sigma
+from .preprocess import fast_median, median3, noise_sigma
 from .radial import has_dip, image_extent, profile_centres, radial_centres
 
 __all__ = ["locate", "estimate_sigma", "sigma_to_diameter", "diameter_to_sigma", "repair_hot_pixels",
@@ -435,7 +435,7 @@ def _locate_multiscale(frame, snr=None, gain=1.0, offset=0.0, read_noise=0.0, br
             classes.append([s])
     for cl in classes:
         q = np.nonzero(blob & np.isin(scale, cl))[0]
-        s0 = float(np.median(scale[q]))
+        s0 = fast_median(scale[q])
         src = raw if poisson else sub
         fit = fit_spots(src, rows[q], cols[q], s0, gain=gain if poisson else 1.0,
                         offset=offset if poisson else 0.0, read_noise=read_noise, poisson=poisson,
