@@ -167,3 +167,13 @@ def test_fast_median_is_numpys():
     assert np.isnan(fast_median(b))
     assert fast_median(np.arange(10, dtype=np.float32).reshape(2, 5)[:, ::2]) == float(np.median(
         np.arange(10, dtype=np.float32).reshape(2, 5)[:, ::2]))
+
+
+def test_blur_ladder_kernels_reach_three_sigmas():
+    f = np.zeros((41, 41), np.float32)
+    f[20, 20] = 1.0
+    b = D._blur_ladder(f, [1.0, 2.0])
+    assert b[0][20, 23] > 0 and b[0][20, 24] == 0 and b[0][24, 20] == 0
+    assert abs(float(b[0].sum()) - 1.0) < 1e-5           # still normalised
+    # the second rung blurs the first by sqrt(2^2 - 1) = 1.73 px: 3 + 6 px reach in all
+    assert b[1][20, 29] > 0 and b[1][20, 30] == 0

@@ -79,6 +79,8 @@ _IVS_BLOCK_BYTES = 1 << 20
 # the full-size inverse-noise maps of a cache are written into the previous map's array (kept in the blur pool):
 # a fresh 11 MB array per map measurement costs its page faults (~4 ms per 640 x 424 map against ~1 ms to fill)
 _POOL_IVS = True
+# reach of the blur ladder's Gaussian kernels (sigmas; None: cv2's 4)
+_BLUR_TRUNC = 3.0
 # the median of the frame's noise map is taken over every this many pixels of each axis (1: all)
 _RN_MEDIAN_STEP = 4
 # surround of the band-pass, in units of the scale: 2 = two rungs of the sqrt(2) ladder, so the
@@ -93,6 +95,14 @@ def bandpass(work, s: float):
     s = max(0.5, float(s))
     return cv2.GaussianBlur(work, (0, 0), s, borderType=cv2.BORDER_REFLECT) - \
         cv2.GaussianBlur(work, (0, 0), _SURROUND * s, borderType=cv2.BORDER_REFLECT)
+
+
+def _ksize(s):
+    # the ladder's Gaussian kernels reach _BLUR_TRUNC sigmas (cv2's own choice for float images is 4)
+    if _BLUR_TRUNC is None:
+        return (0, 0)
+    k = 2 * int(math.ceil(_BLUR_TRUNC * s)) + 1
+    return (k, k)
 
 
 def _blur_ladder(work, sigmas, pool=None):
@@ -131,12 +141,12 @@ def _blur_ladder(work, sigmas, pool=None):
                 half = cv2.resize(prev, (W // 2, H // 2), interpolation=cv2.INTER_AREA)
                 half_s = math.sqrt(prev_s ** 2 + 0.25)      # area reduction ~ a 0.5 px blur at full scale
             ds = math.sqrt(max(s * s - half_s * half_s, 0.01)) / 2.0
-            half = cv2.GaussianBlur(half, (0, 0), ds, borderType=cv2.BORDER_REFLECT)
+            half = cv2.GaussianBlur(half, _ksize(ds), ds, borderType=cv2.BORDER_REFLECT)
             half_s = s
             out.append(into(i, 0, cv2.resize, half, (W, H), interpolation=cv2.INTER_LINEAR))
             continue
         ds = math.sqrt(max(s * s - prev_s * prev_s, 0.01))
-        prev = into(i, 1, cv2.GaussianBlur, prev, (0, 0), ds, borderType=cv2.BORDER_REFLECT)
+        prev = into(i, 1, cv2.GaussianBlur, prev, _ksize(ds), ds, borderType=cv2.BORDER_REFLECT)
         prev_s = s
         out.append(prev)
     return out
