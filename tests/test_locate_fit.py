@@ -159,3 +159,36 @@ def test_ring_like_with_an_offset_table_is_the_per_pixel_rule():
         nn = cnt[1] if mid < outer else cnt[2]
         assert out[k] == (core < mid or min(mid, outer) < -4.0 * 2.0 / math.sqrt(max(nn, 1)))
     assert out[0]
+
+
+def test_dip_test_is_the_annulus_rule():
+    from ptrack.image import radial as RA
+
+    rng = np.random.default_rng(12)
+    H, W = 80, 100
+    yy, xx = np.mgrid[:H, :W]
+    img = rng.normal(0.0, 1.0, (H, W))
+    centres = [(20.3, 30.6), (50.0, 70.2), (4.4, 95.1), (60.7, 15.5)]
+    for k, (y, x) in enumerate(centres):
+        d = np.hypot(yy - y, xx - x)
+        img += 40 * np.exp(-d ** 2 / 4.0) - (12 * np.exp(-(d - 5.0) ** 2) if k % 2 == 0 else 0)
+    img = img.astype(np.float32)
+    x0 = np.r_[[c[1] for c in centres], rng.uniform(0, W, 30)]
+    y0 = np.r_[[c[0] for c in centres], rng.uniform(0, H, 30)]
+    rmax = rng.integers(4, 12, len(x0)).astype(float)
+    got = RA.has_dip(img, x0, y0, 1.0, rmax)
+    for k in range(len(x0)):                        # the rule on _annulus_sums (every window pixel)
+        R = int(rmax[k])
+        sums, cnt = np.zeros(R + 1), np.zeros(R + 1)
+        RA._annulus_sums(img, x0[k], y0[k], R, sums, cnt)
+        found = False
+        for b in range(2, R - 1):
+            if cnt[b] == 0 or cnt[b + 2] == 0:
+                continue
+            m, se = sums[b] / cnt[b], 1.0 / math.sqrt(cnt[b])
+            outside = max(sums[b + 1] / max(cnt[b + 1], 1.0), sums[b + 2] / cnt[b + 2])
+            if m < -4 * se and m < outside - 4 * se and m < sums[0] / max(cnt[0], 1.0) - 4 * se:
+                found = True
+                break
+        assert got[k] == found
+    assert got[0] and got[2] and not got[1]

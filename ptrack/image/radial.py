@@ -543,16 +543,41 @@ def image_extent(img, x0, y0, noise, rmin, rmax, k_sig: float = 4.0, gap: int | 
 
 
 @nb.njit(cache=True)
+def _annulus_sums_disc(img, xc, yc, R, sums, cnt):
+    # _annulus_sums, the pixels farther than R + 1 px (whose annulus is beyond R) skipped before their square
+    # root: the same sums in the same order
+    h, w = img.shape
+    rc = int(round(yc))
+    cc = int(round(xc))
+    lim = (R + 1.0) ** 2
+    for i in range(max(0, rc - R), min(h, rc + R + 1)):
+        dy2 = (i - yc) ** 2
+        for j in range(max(0, cc - R), min(w, cc + R + 1)):
+            d2 = (j - xc) ** 2 + dy2
+            if d2 > lim:
+                continue
+            b = int(math.sqrt(d2) + 0.5)
+            if b <= R:
+                sums[b] += img[i, j]
+                cnt[b] += 1
+
+
+@nb.njit(cache=True)
 def _dip_all(img, x0, y0, noise, rmax, k_sig, out):
     # per image (particles positive): an annulus of the opposite sign, k_sig standard errors below zero
     # and below the level just outside it, at 1.5 px or more from the centre
+    rm = 0
+    for k in range(x0.shape[0]):
+        rm = max(rm, int(rmax[k]))
+    sums = np.zeros(rm + 1)
+    cnt = np.zeros(rm + 1)
     for k in range(x0.shape[0]):
         R = int(rmax[k])
-        sums = np.zeros(R + 1)
-        cnt = np.zeros(R + 1)
+        sums[:] = 0.0
+        cnt[:] = 0.0
         xc = x0[k]
         yc = y0[k]
-        _annulus_sums(img, xc, yc, R, sums, cnt)
+        _annulus_sums_disc(img, xc, yc, R, sums, cnt)
         found = False
         for b in range(2, R - 1):
             if cnt[b] == 0 or cnt[b + 2] == 0:
