@@ -192,3 +192,28 @@ def test_dip_test_is_the_annulus_rule():
                 break
         assert got[k] == found
     assert got[0] and got[2] and not got[1]
+
+
+def test_two_spot_least_squares_evaluation_is_the_generic_one_bit_for_bit():
+    rng = np.random.default_rng(13)
+    img = rng.normal(50.0, 4.0, (50, 60)).astype(np.float32)
+    for trial in range(20):
+        nr, nc = int(rng.integers(7, 20)), int(rng.integers(7, 25))
+        r0, c0 = int(rng.integers(0, 50 - nr)), int(rng.integers(0, 60 - nc))
+        th = np.array([c0 + rng.uniform(2, nc - 2), r0 + rng.uniform(2, nr - 2), rng.uniform(50, 5000),
+                       c0 + rng.uniform(2, nc - 2), r0 + rng.uniform(2, nr - 2), rng.uniform(50, 5000),
+                       rng.uniform(-5, 60), rng.uniform(0.7, 3.0)])
+        gain, offset = rng.uniform(0.5, 3.0), rng.uniform(0, 10)
+        out = []
+        for two in (False, True):
+            w = F._work(2, max(nr, nc))
+            J, g = np.zeros((8, 8)), np.zeros(8)
+            if two:
+                f = F._eval_ls2(img, r0, nr, c0, nc, th, gain, offset, w[0], w[1], J, g, w[10], w[11], w[13], w[14],
+                                w[15], w[16])
+            else:
+                f = F._eval_ls(img, r0, nr, c0, nc, th, 2, gain, offset, w[0], w[1], J, g, w[10], w[11], w[12],
+                               w[13], w[14], w[15], w[16])
+            out.append((f, J.copy(), g.copy()))
+        assert out[0][0] == out[1][0]
+        assert np.array_equal(out[0][1], out[1][1]) and np.array_equal(out[0][2], out[1][2])

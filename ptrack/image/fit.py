@@ -545,6 +545,94 @@ def _eval_ls1(img, r0, nr, c0, nc, th, gain, offset, FX, FY, J, g, Gx, Gy, TC, T
     return -0.5 * rss, rss
 
 
+@nb.njit(cache=True)
+def _eval_ls2(img, r0, nr, c0, nc, th, gain, offset, FX, FY, J, g, Gx, Gy, TC, TA, TB, TP):
+    # _eval_ls for two spots (K = 2, the joint fits of close pairs), the same operations in the same order
+    # (bit-identical), with the residual's seven row sums and the eight score terms in scalars
+    _profiles(th, 2, r0, nr, c0, nc, FX, FY)
+    bg = th[6]
+    N0 = th[2]
+    N1 = th[5]
+    ex0 = FX[0]
+    dx0 = FX[1]
+    sx0 = FX[2]
+    ex1 = FX[3]
+    dx1 = FX[4]
+    sx1 = FX[5]
+    g0 = 0.0
+    g1 = 0.0
+    g2 = 0.0
+    g3 = 0.0
+    g4 = 0.0
+    g5 = 0.0
+    g6 = 0.0
+    g7 = 0.0
+    rss = 0.0
+    ig = 1.0 / gain
+    for i in range(nr):
+        q0 = 0.0
+        q1 = 0.0
+        q2 = 0.0
+        q3 = 0.0
+        q4 = 0.0
+        q5 = 0.0
+        q6 = 0.0
+        e0i = FY[0, i]
+        e1i = FY[3, i]
+        row = img[r0 + i]
+        for j in range(nc):
+            mu = bg + N0 * ex0[j] * e0i
+            mu = mu + N1 * ex1[j] * e1i
+            r = (row[c0 + j] - offset) * ig - mu
+            rss += r * r
+            q0 += r * ex0[j]
+            q1 += r * dx0[j]
+            q2 += r * sx0[j]
+            q3 += r * ex1[j]
+            q4 += r * dx1[j]
+            q5 += r * sx1[j]
+            q6 += r
+        g0 += N0 * q1 * e0i
+        g1 += N0 * q0 * FY[1, i]
+        g2 += q0 * e0i
+        g7 += N0 * (q2 * e0i + q0 * FY[2, i])
+        g3 += N1 * q4 * e1i
+        g4 += N1 * q3 * FY[4, i]
+        g5 += q3 * e1i
+        g7 += N1 * (q5 * e1i + q3 * FY[5, i])
+        g6 += q6
+    g[0] = g0
+    g[1] = g1
+    g[2] = g2
+    g[3] = g3
+    g[4] = g4
+    g[5] = g5
+    g[6] = g6
+    g[7] = g7
+    for a in range(7):
+        for bb in range(a, 7):
+            sx = 0.0
+            for j in range(nc):
+                sx += FX[a, j] * FX[bb, j]
+            sy = 0.0
+            for i in range(nr):
+                sy += FY[a, i] * FY[bb, i]
+            Gx[a, bb] = sx
+            Gx[bb, a] = sx
+            Gy[a, bb] = sy
+            Gy[bb, a] = sy
+    _terms(th, 2, TC, TA, TB, TP)
+    for p in range(8):
+        for q in range(p, 8):
+            v = 0.0
+            for tp in range(TP[p], TP[p + 1]):
+                for tq in range(TP[q], TP[q + 1]):
+                    v += TC[tp] * TC[tq] * Gx[TA[tp], TA[tq]] * Gy[TB[tp], TB[tq]]
+            J[p, q] = v
+            J[q, p] = v
+    return -0.5 * rss, rss
+
+
 #: one-spot fits by :func:`_eval_ls1` and :func:`_eval_poisson1` (False: the generic :func:`_eval_ls` and
 #: :func:`_eval_poisson`; the same numbers)
 _LS1 = True
@@ -558,6 +646,9 @@ def _evaluate(img, r0, nr, c0, nc, th, K, gain, offset, rvar, poisson, w, J, g):
         return _eval_poisson(img, r0, nr, c0, nc, th, K, gain, offset, rvar, w[0], w[1], J, g, w[9])
     if K == 1 and _LS1:
         return _eval_ls1(img, r0, nr, c0, nc, th, gain, offset, w[0], w[1], J, g, w[10], w[11], w[13], w[14], w[15],
+                         w[16])
+    if K == 2 and _LS1:
+        return _eval_ls2(img, r0, nr, c0, nc, th, gain, offset, w[0], w[1], J, g, w[10], w[11], w[13], w[14], w[15],
                          w[16])
     return _eval_ls(img, r0, nr, c0, nc, th, K, gain, offset, w[0], w[1], J, g, w[10], w[11], w[12], w[13], w[14],
                     w[15], w[16])
