@@ -66,7 +66,7 @@ def test_warmup_compiles_the_image_kernels_ptrack_track_uses():
             "assert not any(k.signatures for k in ks)\n"
             "n = warm_track()\n"
             "print(n, *[len(k.signatures) for k in ks])\n"
-            "print(sorted({str(s[0]) for s in rings._patch_mosaic.signatures}))\n")
+            "print(sorted({str(s[0]) for s in rings._patch_dips.signatures}))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.splitlines()
     counts = [int(v) for v in out[0].split()]
     assert counts[0] > 100 and all(c >= 1 for c in counts[1:]), out
