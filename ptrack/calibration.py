@@ -32,7 +32,7 @@ import pandas as pd
 from numba import njit
 
 from .errors import UserError, check_positive, require_file
-from .gdpt.ncc import Templates, ncc, ncc_pages
+from .gdpt.ncc import Templates, ncc, ncc_pages, ncc_pages_strided
 
 _COMMON_WINDOW = True     # compare the pages around the best one on one window (see _match_one)
 _COMMON_PAGES = 2         # pages either side of the best one (4: diffusion3d a little better, a close pair worse)
@@ -56,6 +56,9 @@ _NEIGHBOUR_WEIGHT = None   # re-matches in locate_3d's refine passes weight each
                            # 2.02 / 1.83 / 2.70 %); but make run: diffusion3d z RMSE 81 -> 88 nm (recall 0.917 ->
                            # 0.932), EPD v_z -4.98 +- 0.24 -> -4.97 +- 0.20 (1.2 -> 1.5 SE), and 1.5-2.5x the CPU
                            # time on crowded frames: off until that is understood
+_SHIFT_STRIDE = 2          # _match_one's coarse pages at every 2nd shift (see there; 1: every shift): diffusion3d
+                           # CPU 140 -> 125 ms/frame, bench_pipeline B figures within 0.01 %; bench_gdpt speed
+                           # frames 11-25 % less CPU except the largest random images (0.95 um), recall there 0.59 -> 0.57
 _FLIP = True               # locate_3d tries the other side of focus for badly explained overlapping images
                            # (_flip_branches): bench_pipeline B diffusion3d recall 0.952 -> 0.955, precision 0.970
                            # -> 0.972, overlapping-image z RMSE 2.06 -> 1.59 % of the depth
@@ -520,17 +523,39 @@ def _quadratic_peak(z, c, k, n_points=None, drop: float = 0.15):
     lo, hi = max(0, k - w), min(K, k + w + 1)
     if hi - lo < 3:
         return float(z[k])
-    zz = z[lo:hi] - z[k]
-    # least-squares parabola c = a zz^2 + b zz + e from its normal equations (3 x 3; np.polyfit costs ~10x more)
-    V = np.stack([zz * zz, zz, np.ones_like(zz)], axis=1)
-    try:
-        a, b, _ = np.linalg.solve(V.T @ V, V.T @ c[lo:hi])
-    except np.linalg.LinAlgError:
-        return float(z[k])
-    if a >= 0:
-        return float(z[k])
-    t = -b / (2 * a)
-    return float(z[k] + np.clip(t, zz[0], zz[-1]))
+    return _parabola_fit_vertex(np.asarray(z, np.float64), np.asarray(c, np.float64), k, lo, hi)
+
+
+@njit(cache=True)
+def _parabola_fit_vertex(z, c, k, lo, hi):
+    # least-squares parabola c = a u^2 + b u + e through (z[lo:hi], c[lo:hi]), u = (z - z[k]) / s scaled to
+    # about 1 (well-conditioned normal equations, solved by Cramer's rule: ~15x less than np.linalg.solve of
+    # the 3 x 3 system per call); its vertex, clipped to the window, or z[k] if the fit opens upwards
+    s = max(abs(z[lo] - z[k]), abs(z[hi - 1] - z[k]))
+    if s == 0.0:
+        return z[k]
+    S0 = S1 = S2 = S3 = S4 = T0 = T1 = T2 = 0.0
+    for q in range(lo, hi):
+        u = (z[q] - z[k]) / s
+        u2 = u * u
+        S0 += 1.0
+        S1 += u
+        S2 += u2
+        S3 += u2 * u
+        S4 += u2 * u2
+        T0 += c[q]
+        T1 += c[q] * u
+        T2 += c[q] * u2
+    # [S4 S3 S2; S3 S2 S1; S2 S1 S0] (a, b, e) = (T2, T1, T0)
+    det = S4 * (S2 * S0 - S1 * S1) - S3 * (S3 * S0 - S1 * S2) + S2 * (S3 * S1 - S2 * S2)
+    if det == 0.0:
+        return z[k]
+    a = (T2 * (S2 * S0 - S1 * S1) - S3 * (T1 * S0 - S1 * T0) + S2 * (T1 * S1 - S2 * T0)) / det
+    b = (S4 * (T1 * S0 - S1 * T0) - T2 * (S3 * S0 - S1 * S2) + S2 * (S3 * T0 - T1 * S2)) / det
+    if a >= 0.0:
+        return z[k]
+    t = -b / (2.0 * a) * s
+    return z[k] + min(max(t, z[lo] - z[k]), z[hi - 1] - z[k])
 
 
 def smoothed_templates(calib: Calibration, smooth: float) -> Templates:
@@ -725,30 +750,50 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
         # (templates interpolated between recorded pages: at the +-2 shifts around the coarse stage's best only,
         # unless the image is cut by the frame edge and needs the masked correlation)
         first = np.arange(-(-plo // coarse) * coarse, phi, coarse)
-        if batch:
-            maps[first] = ncc_pages(padded, ri, ci, m, tmpl, first)
+        stride = _SHIFT_STRIDE if batch and _SHIFT_STRIDE > 1 and m >= 2 * _SHIFT_STRIDE else 1
+        if stride > 1:
+            # the coarse pages at every ``stride``-th shift only (1/stride^2 of the work; at +-4 px the coarse pages
+            # were 3/4 of a match's correlations): best page by the sub-pixel peak height of those maps (a parabola
+            # through samples ``stride`` px apart, so that a sharp peak between samples is not lost), then every
+            # page within a coarse step + 1 of it, at every shift (or, interpolated templates, within
+            # ``fine_margin`` of that page's best sample, and at least ``stride``); only those pages compete for the
+            # best page (recorded pages at +-2 px of the best sample instead of every shift: diffusion3d
+            # overlapping-image z RMSE 1.59 -> 2.62 %)
+            cmaps = ncc_pages_strided(padded, ri, ci, m, tmpl, first, stride)
+            q = int(np.argmax(_subpixel_peaks(cmaps)))
+            best = int(first[q])
+            a, b = np.unravel_index(int(np.argmax(cmaps[q])), cmaps.shape[1:])
+            i0, j0 = a * stride, b * stride
+            lo, hi = max(plo, best - coarse - 1), min(phi, best + coarse + 2)
+            fw = m if fine_margin is None else max(stride, fine_margin)
+            done = np.arange(lo, hi)
+            maps[done] = ncc_pages(padded, ri, ci, m, tmpl, done, rows=(max(i0 - fw, 0), min(i0 + fw, n - 1) + 1),
+                                   cols=(max(j0 - fw, 0), min(j0 + fw, n - 1) + 1))
         else:
-            for k in first:
-                maps[k] = corr(k)
-            np.copyto(maps, -1.0, where=np.isnan(maps))    # a constant window (padding) gives NaN (OpenCV)
-        best = int(first[np.argmax(maps[first].reshape(len(first), -1).max(1))])
-        lo, hi = max(plo, best - coarse - 1), min(phi, best + coarse + 2)
-        i0, j0 = np.unravel_index(int(np.argmax(maps[best])), (n, n))
-        near = fine_margin is not None and not masked and m > fine_margin
-        ks = [k for k in range(lo, hi) if k % coarse]
-        if batch and ks:
-            rows = (max(i0 - fine_margin, 0), min(i0 + fine_margin, n - 1) + 1) if near else None
-            cols = (max(j0 - fine_margin, 0), min(j0 + fine_margin, n - 1) + 1) if near else None
-            maps[ks] = ncc_pages(padded, ri, ci, m, tmpl, ks, rows=rows, cols=cols)
-        else:
-            for k in ks:
-                maps[k] = corr_near(k, i0, j0, fine_margin) if near else corr(k)
-            np.copyto(maps, -1.0, where=np.isnan(maps))
-        # the pages correlated (sorted; np.union1d costs ~100 us a match)
-        sel = np.zeros(K, bool)
-        sel[first] = True
-        sel[lo:hi] = True
-        done = np.flatnonzero(sel)
+            if batch:
+                maps[first] = ncc_pages(padded, ri, ci, m, tmpl, first)
+            else:
+                for k in first:
+                    maps[k] = corr(k)
+                np.copyto(maps, -1.0, where=np.isnan(maps))    # a constant window (padding) gives NaN (OpenCV)
+            best = int(first[np.argmax(maps[first].reshape(len(first), -1).max(1))])
+            lo, hi = max(plo, best - coarse - 1), min(phi, best + coarse + 2)
+            i0, j0 = np.unravel_index(int(np.argmax(maps[best])), (n, n))
+            near = fine_margin is not None and not masked and m > fine_margin
+            ks = [k for k in range(lo, hi) if k % coarse]
+            if batch and ks:
+                rows = (max(i0 - fine_margin, 0), min(i0 + fine_margin, n - 1) + 1) if near else None
+                cols = (max(j0 - fine_margin, 0), min(j0 + fine_margin, n - 1) + 1) if near else None
+                maps[ks] = ncc_pages(padded, ri, ci, m, tmpl, ks, rows=rows, cols=cols)
+            else:
+                for k in ks:
+                    maps[k] = corr_near(k, i0, j0, fine_margin) if near else corr(k)
+                np.copyto(maps, -1.0, where=np.isnan(maps))
+            # the pages correlated (sorted; np.union1d costs ~100 us a match)
+            sel = np.zeros(K, bool)
+            sel[first] = True
+            sel[lo:hi] = True
+            done = np.flatnonzero(sel)
     else:
         for k in range(plo, phi):
             maps[k] = corr(k)

@@ -52,3 +52,31 @@ def test_pages_match_one_by_one():
             ref[a0:a1, b0:b1] = N.ncc(img[ri - h - m + a0:ri + h - m + a1, ci - h - m + b0:ci + h - m + b1],
                                       t[o:o + Tc, o:o + Tc])
             np.testing.assert_array_equal(got[q], ref)
+
+
+@pytest.mark.parametrize("m", [2, 4, 5])
+def test_strided_pages_are_the_full_maps_every_step_th_shift(m):
+    """ncc_pages_strided(step=2) is ncc_pages' map at every 2nd shift of each axis, bit for bit (same sums)."""
+    rng = np.random.default_rng(3)
+    tm = N.Templates([rng.random((T, T)).astype(np.float32) for T in (9, 21, 31)])
+    img = (100 * rng.random((120, 120))).astype(np.float32)
+    full = N.ncc_pages(img, 60, 61, m, tm, [0, 1, 2])
+    coarse = N.ncc_pages_strided(img, 60, 61, m, tm, [0, 1, 2], 2)
+    assert coarse.shape == (3, m + 1, m + 1)
+    assert np.array_equal(full[:, ::2, ::2], coarse)
+
+
+def test_parabola_vertex_of_the_least_squares_fit():
+    """_quadratic_peak's window fit is the least-squares parabola's vertex (np.polyfit), clipped to the window."""
+    from ptrack.calibration import _quadratic_peak
+
+    rng = np.random.default_rng(4)
+    z = np.round(np.arange(-3e-6, 3.0001e-6, 0.1e-6), 12)
+    for _ in range(200):
+        z0, width = rng.uniform(-2.9e-6, 2.9e-6), rng.uniform(0.3e-6, 2e-6)
+        c = 0.99 - 0.1 * ((z - z0) / width) ** 2 + rng.normal(0, 1e-3, z.size)
+        k = int(np.argmax(c))
+        lo, hi = max(0, k - 4), min(z.size, k + 5)
+        a, b, _ = np.polyfit(z[lo:hi] - z[k], c[lo:hi], 2)
+        want = z[k] + np.clip(-b / (2 * a), z[lo] - z[k], z[hi - 1] - z[k]) if a < 0 else z[k]
+        assert abs(_quadratic_peak(z, c, k, n_points=9) - want) < 1e-15

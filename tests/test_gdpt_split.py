@@ -127,3 +127,23 @@ def test_crowded_movie_image_matched_across_focus_is_flipped():
         dist = np.hypot(df["x_px"] - t["x_px"], df["y_px"] - t["y_px"]).to_numpy()
         i = int(np.argmin(dist))
         assert dist[i] <= 1.0 and abs(df["z"].iloc[i] - t["z"]) < 0.2e-6, (p, dist[i], df["z"].iloc[i], t["z"])
+
+
+def test_strided_coarse_pass_finds_the_same_match(monkeypatch):
+    """Isolated images from the shipped calibration at 12 heights, 0.3 px off the pixel grid: the match whose
+    coarse pages are correlated at every 2nd shift (_SHIFT_STRIDE = 2) lands on the same page, position and z
+    as the one correlating every shift."""
+    import ptrack.calibration as C
+
+    _d, cal, _t = _shipped()
+    for z in np.linspace(-2.6e-6, 2.6e-6, 12):
+        frame = _place(cal, [(40.3, 39.7, z, 4500.0)], (80, 80), 7.7, 1)
+        padded, pad, tmpl = C._prepare_matching(frame, cal, 1.5, 4)
+        got = {}
+        for s in (1, 2):
+            monkeypatch.setattr(C, "_SHIFT_STRIDE", s)
+            got[s] = C._match_one(padded, pad, 40.0, 40.0, tmpl, cal, 4, None, 0.15, 4)
+        assert got[1]["page"] == got[2]["page"]
+        for key in ("x_px", "y_px", "z"):
+            assert got[1][key] == pytest.approx(got[2][key], abs=1e-12), (z, key)
+        assert abs(got[2]["z"] - z) < 0.15e-6

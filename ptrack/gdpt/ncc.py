@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["ncc", "DIRECT_MAX"]
+__all__ = ["ncc", "ncc_pages", "ncc_pages_strided", "DIRECT_MAX"]
 
 DIRECT_MAX = 121     # shifts (rows x cols of the map) up to which the direct sum is used (11 x 11)
 
@@ -112,6 +112,96 @@ def _ncc_pages(img, ri, ci, m, flat, offs, sizes, pages, crop, a0, a1, b0, b1, o
         win = img[ri - h - m + a0: ri + h - m + a1, ci - h - m + b0: ci + h - m + b1]
         out[q, :, :] = -1.0
         out[q, a0:a1, b0:b1] = _ncc_direct(win, t[o:o + Tc, o:o + Tc])
+
+
+@njit(cache=True, fastmath=True)
+def _dot(a, b):
+    # the dot product of two float32 rows (a function of its own: inlined, its loop is vectorised, which the same
+    # loop written inside the shift loops is not when the shift has a stride)
+    s = np.float32(0.0)
+    for k in range(a.shape[0]):
+        s += a[k] * b[k]
+    return s
+
+
+@njit(cache=True, fastmath=True)
+def _ncc_strided(win, t, step):
+    # _ncc_direct at every ``step``-th shift in each axis only (a coarse pass over the shifts): the same sums,
+    # the integral images over the whole window
+    win = np.ascontiguousarray(win)
+    T0, T1 = t.shape
+    H, W = win.shape
+    ny, nx = (H - T0) // step + 1, (W - T1) // step + 1
+    N = T0 * T1
+    tm = 0.0
+    for a in range(T0):
+        for b in range(T1):
+            tm += t[a, b]
+    tm /= N
+    tz = np.empty((T0, T1), np.float32)
+    tn = 0.0
+    for a in range(T0):
+        for b in range(T1):
+            v = t[a, b] - tm
+            tz[a, b] = v
+            tn += v * v
+    S1 = np.zeros((H + 1, W + 1))
+    S2 = np.zeros((H + 1, W + 1))
+    for a in range(H):
+        r1 = 0.0
+        r2 = 0.0
+        for b in range(W):
+            w = np.float64(win[a, b])
+            r1 += w
+            r2 += w * w
+            S1[a + 1, b + 1] = S1[a, b + 1] + r1
+            S2[a + 1, b + 1] = S2[a, b + 1] + r2
+    out = np.empty((ny, nx), np.float32)
+    acc = np.empty(nx, np.float32)
+    for ii in range(ny):
+        i = ii * step
+        acc[:] = 0.0
+        for a in range(T0):
+            row = win[i + a]
+            trow = tz[a]
+            for jj in range(nx):
+                j = jj * step
+                acc[jj] += _dot(row[j:j + T1], trow)
+        for jj in range(nx):
+            j = jj * step
+            s1 = S1[i + T0, j + T1] - S1[i, j + T1] - S1[i + T0, j] + S1[i, j]
+            s2 = S2[i + T0, j + T1] - S2[i, j + T1] - S2[i + T0, j] + S2[i, j]
+            d = np.sqrt(max(s2 - s1 * s1 / N, 0.0) * tn)
+            out[ii, jj] = acc[jj] / d if d > 0 else -1.0
+    return out
+
+
+@njit(cache=True)
+def _ncc_pages_strided(img, ri, ci, m, flat, offs, sizes, pages, step, out):
+    for q in range(len(pages)):
+        k = pages[q]
+        T = sizes[k]
+        t = flat[offs[k]:offs[k] + T * T].reshape((T, T))
+        h = T // 2
+        win = img[ri - h - m: ri + h + m + 1, ci - h - m: ci + h + m + 1]
+        out[q, :, :] = _ncc_strided(win, t, step)
+
+
+def ncc_pages_strided(img, ri, ci, m, tmpl: "Templates", pages, step: int) -> np.ndarray:
+    """As :func:`ncc_pages` (no crop, all shifts) at every ``step``-th shift of each axis only: the maps'
+    element (a, b) is the correlation at shift (a step, b step) from the corner, i.e. map index (a step, b step) of
+    :func:`ncc_pages`.
+
+    Returns
+    -------
+    (len(pages), 2 m // step + 1, 2 m // step + 1) float32 array
+    """
+    nc = (2 * m) // step + 1
+    flat, offs, sizes = tmpl.packed
+    pages = np.asarray(pages, np.int64)
+    out = np.empty((len(pages), nc, nc), np.float32)
+    _ncc_pages_strided(img, int(ri), int(ci), int(m), flat, offs, sizes, pages, int(step), out)
+    return out
 
 
 class Templates(list):
