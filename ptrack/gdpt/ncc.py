@@ -18,13 +18,12 @@ DIRECT_MAX = 121     # shifts (rows x cols of the map) up to which the direct su
 
 
 @njit(cache=True, fastmath=True)
-def _ncc_direct(win, t):
-    # a contiguous copy of the window (a few thousand floats): with a slice's unknown strides the inner dot
-    # product is not vectorised (a 49 px template at 9 x 9 shifts: 109 -> 24 us)
-    win = np.ascontiguousarray(win)
+def _setup(win, t):
+    # what every correlation map needs besides the dot products: the zero-mean template and its sum of squares,
+    # and the window's sums and sums of squares at every shift from double-precision integral images (the
+    # variance is a difference of two large sums)
     T0, T1 = t.shape
     H, W = win.shape
-    ny, nx = H - T0 + 1, W - T1 + 1
     N = T0 * T1
     tm = 0.0
     for a in range(T0):
@@ -38,8 +37,6 @@ def _ncc_direct(win, t):
             v = t[a, b] - tm
             tz[a, b] = v
             tn += v * v
-    # window sums and sums of squares at every shift from double-precision integral images (the variance is
-    # a difference of two large sums)
     S1 = np.zeros((H + 1, W + 1))
     S2 = np.zeros((H + 1, W + 1))
     for a in range(H):
@@ -51,6 +48,19 @@ def _ncc_direct(win, t):
             r2 += w * w
             S1[a + 1, b + 1] = S1[a, b + 1] + r1
             S2[a + 1, b + 1] = S2[a, b + 1] + r2
+    return tz, tn, S1, S2
+
+
+@njit(cache=True, fastmath=True)
+def _ncc_direct(win, t):
+    # a contiguous copy of the window (a few thousand floats): with a slice's unknown strides the inner dot
+    # product is not vectorised (a 49 px template at 9 x 9 shifts: 109 -> 24 us)
+    win = np.ascontiguousarray(win)
+    T0, T1 = t.shape
+    H, W = win.shape
+    ny, nx = H - T0 + 1, W - T1 + 1
+    N = T0 * T1
+    tz, tn, S1, S2 = _setup(win, t)
     out = np.empty((ny, nx), np.float32)
     acc = np.empty(nx, np.float32)
     for i in range(ny):
@@ -133,29 +143,7 @@ def _ncc_strided(win, t, step):
     H, W = win.shape
     ny, nx = (H - T0) // step + 1, (W - T1) // step + 1
     N = T0 * T1
-    tm = 0.0
-    for a in range(T0):
-        for b in range(T1):
-            tm += t[a, b]
-    tm /= N
-    tz = np.empty((T0, T1), np.float32)
-    tn = 0.0
-    for a in range(T0):
-        for b in range(T1):
-            v = t[a, b] - tm
-            tz[a, b] = v
-            tn += v * v
-    S1 = np.zeros((H + 1, W + 1))
-    S2 = np.zeros((H + 1, W + 1))
-    for a in range(H):
-        r1 = 0.0
-        r2 = 0.0
-        for b in range(W):
-            w = np.float64(win[a, b])
-            r1 += w
-            r2 += w * w
-            S1[a + 1, b + 1] = S1[a, b + 1] + r1
-            S2[a + 1, b + 1] = S2[a, b + 1] + r2
+    tz, tn, S1, S2 = _setup(win, t)
     out = np.empty((ny, nx), np.float32)
     acc = np.empty(nx, np.float32)
     for ii in range(ny):
