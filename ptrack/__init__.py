@@ -7,3 +7,8 @@ All public APIs use SI units (m, s, kg, C, V/m, Pa s, K, m^2/s).
 """
 
 __version__ = "0.1.0"
+
+# numba's cache stamps a kernel with its own file only; ours also with the project files it imports
+from ._numba_cache import install as _install_numba_cache  # noqa: E402
+
+_install_numba_cache()
