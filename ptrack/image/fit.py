@@ -259,6 +259,36 @@ def _terms(th, K, TC, TA, TB, TP):
     TP[P] = t
 
 
+@nb.njit(cache=True, inline="always")
+def _ls_fisher(th, K, nr, nc, FX, FY, J, Gx, Gy, TC, TA, TB, TP):
+    # the Gauss-Newton matrix J of the separable least-squares model: the 1-D Gram matrices Gx, Gy of the
+    # column and row functions (FX, FY), then each entry as the sum over the parameters' separable terms
+    # (_terms) of coefficient products times a Gx and a Gy entry
+    P = 3 * K + 2
+    Q = 3 * K + 1
+    for a in range(Q):
+        for bb in range(a, Q):
+            sx = 0.0
+            for j in range(nc):
+                sx += FX[a, j] * FX[bb, j]
+            sy = 0.0
+            for i in range(nr):
+                sy += FY[a, i] * FY[bb, i]
+            Gx[a, bb] = sx
+            Gx[bb, a] = sx
+            Gy[a, bb] = sy
+            Gy[bb, a] = sy
+    _terms(th, K, TC, TA, TB, TP)
+    for p in range(P):
+        for q in range(p, P):
+            v = 0.0
+            for tp in range(TP[p], TP[p + 1]):
+                for tq in range(TP[q], TP[q + 1]):
+                    v += TC[tp] * TC[tq] * Gx[TA[tp], TA[tq]] * Gy[TB[tp], TB[tq]]
+            J[p, q] = v
+            J[q, p] = v
+
+
 @nb.njit(cache=True)
 def _eval_poisson(img, r0, nr, c0, nc, th, K, gain, offset, rvar, FX, FY, J, g, dm):
     # Poisson log-likelihood f (read-noise shift), score g and Fisher information J at th, in one pass
@@ -344,27 +374,7 @@ def _eval_ls(img, r0, nr, c0, nc, th, K, gain, offset, FX, FY, J, g, Gx, Gy, rro
             g[3 * k + 2] += rrow[3 * k] * eyi
             g[3 * K + 1] += N * (rrow[3 * k + 2] * eyi + rrow[3 * k] * FY[3 * k + 2, i])
         g[3 * K] += rrow[3 * K]
-    for a in range(Q):
-        for bb in range(a, Q):
-            sx = 0.0
-            for j in range(nc):
-                sx += FX[a, j] * FX[bb, j]
-            sy = 0.0
-            for i in range(nr):
-                sy += FY[a, i] * FY[bb, i]
-            Gx[a, bb] = sx
-            Gx[bb, a] = sx
-            Gy[a, bb] = sy
-            Gy[bb, a] = sy
-    _terms(th, K, TC, TA, TB, TP)
-    for p in range(P):
-        for q in range(p, P):
-            v = 0.0
-            for tp in range(TP[p], TP[p + 1]):
-                for tq in range(TP[q], TP[q + 1]):
-                    v += TC[tp] * TC[tq] * Gx[TA[tp], TA[tq]] * Gy[TB[tp], TB[tq]]
-            J[p, q] = v
-            J[q, p] = v
+    _ls_fisher(th, K, nr, nc, FX, FY, J, Gx, Gy, TC, TA, TB, TP)
     return -0.5 * rss, rss
 
 
@@ -521,27 +531,7 @@ def _eval_ls1(img, r0, nr, c0, nc, th, gain, offset, FX, FY, J, g, Gx, Gy, TC, T
     g[2] = g2
     g[3] = g3
     g[4] = g4
-    for a in range(4):
-        for bb in range(a, 4):
-            sx = 0.0
-            for j in range(nc):
-                sx += FX[a, j] * FX[bb, j]
-            sy = 0.0
-            for i in range(nr):
-                sy += FY[a, i] * FY[bb, i]
-            Gx[a, bb] = sx
-            Gx[bb, a] = sx
-            Gy[a, bb] = sy
-            Gy[bb, a] = sy
-    _terms(th, 1, TC, TA, TB, TP)
-    for p in range(5):
-        for q in range(p, 5):
-            v = 0.0
-            for tp in range(TP[p], TP[p + 1]):
-                for tq in range(TP[q], TP[q + 1]):
-                    v += TC[tp] * TC[tq] * Gx[TA[tp], TA[tq]] * Gy[TB[tp], TB[tq]]
-            J[p, q] = v
-            J[q, p] = v
+    _ls_fisher(th, 1, nr, nc, FX, FY, J, Gx, Gy, TC, TA, TB, TP)
     return -0.5 * rss, rss
 
 
@@ -609,27 +599,7 @@ def _eval_ls2(img, r0, nr, c0, nc, th, gain, offset, FX, FY, J, g, Gx, Gy, TC, T
     g[5] = g5
     g[6] = g6
     g[7] = g7
-    for a in range(7):
-        for bb in range(a, 7):
-            sx = 0.0
-            for j in range(nc):
-                sx += FX[a, j] * FX[bb, j]
-            sy = 0.0
-            for i in range(nr):
-                sy += FY[a, i] * FY[bb, i]
-            Gx[a, bb] = sx
-            Gx[bb, a] = sx
-            Gy[a, bb] = sy
-            Gy[bb, a] = sy
-    _terms(th, 2, TC, TA, TB, TP)
-    for p in range(8):
-        for q in range(p, 8):
-            v = 0.0
-            for tp in range(TP[p], TP[p + 1]):
-                for tq in range(TP[q], TP[q + 1]):
-                    v += TC[tp] * TC[tq] * Gx[TA[tp], TA[tq]] * Gy[TB[tp], TB[tq]]
-            J[p, q] = v
-            J[q, p] = v
+    _ls_fisher(th, 2, nr, nc, FX, FY, J, Gx, Gy, TC, TA, TB, TP)
     return -0.5 * rss, rss
 
 
