@@ -320,12 +320,17 @@ def _profile_one(img, r, c, half, x0, y0, n2, gw, out):
                 res *= wt
                 ddxw = ddx * wt
                 ddyw = ddy * wt
+                # only the lower triangle of the linear block (the Cholesky reads no other; mirrored below for
+                # the LU fallback): half the scattered updates, each entry the same products as the full matrix's
+                # lower triangle. The spline indices (positions < nz) are all below the linear ones (K..K+3)
                 for p in range(nzz):
                     ip = idx[p]
                     rhs[ip, 0] += val[p] * res
                     vp = val[p] * wt
-                    for q in range(nzz):
-                        A[ip, idx[q]] += vp * val[q]
+                    for q in range(p + 1 if p >= nz else nz):
+                        iq = idx[q]
+                        if iq <= ip:
+                            A[ip, iq] += vp * val[q]
                     A[ip, IX] += vp * ddx
                     A[ip, IY] += vp * ddy
                 rhs[IX, 0] += ddx * res
@@ -361,6 +366,9 @@ def _profile_one(img, r, c, half, x0, y0, n2, gw, out):
             sol[IX, 1] = _chol_inv_diag(A0, npar, IX, ysc)
             sol[IY, 2] = _chol_inv_diag(A0, npar, IY, ysc)
         else:
+            for q in range(NL):             # the upper triangle of the linear block, for the general solve
+                for q2 in range(q):
+                    A[q2, q] = A[q, q2]
             rhs[IX, 1] = 1.0
             rhs[IY, 2] = 1.0
             sol[:, :] = np.linalg.solve(A, rhs)
