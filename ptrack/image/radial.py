@@ -263,6 +263,9 @@ def _profile_one(img, r, c, half, x0, y0, n2, gw, out):
         rhs[:, :] = 0.0
         rss = 0.0
         npix = 0
+        r0_ = r1_ = r2_ = r3_ = rx_ = ry_ = 0.0
+        a00 = a10 = a11 = a20 = a21 = a22 = a30 = a31 = a32 = a33 = 0.0
+        x0_ = x1_ = x2_ = x3_ = y0_ = y1_ = y2_ = y3_ = axx = axy = ayy = 0.0
         for i in range(r - half, r + half + 1):
             for j in range(c - half, c + half + 1):
                 if (j - x0) ** 2 + (i - y0) ** 2 > rad2:
@@ -292,19 +295,17 @@ def _profile_one(img, r, c, half, x0, y0, n2, gw, out):
                         nz += 1
                     m += theta[kk] * v
                     dp += theta[kk] * d
+                # the background terms: linear parameters K..K+3 with values l0..l3
                 u = j - c
                 t = i - r
-                idx[nz] = K
-                val[nz] = u
-                idx[nz + 1] = K + 1
-                val[nz + 1] = t
-                idx[nz + 2] = K + 2
-                val[nz + 2] = (u * u - t * t) * hq
-                idx[nz + 3] = K + 3
-                val[nz + 3] = u * t * hq
-                nzz = nz + 4
-                for p in range(nz, nzz):
-                    m += theta[idx[p]] * val[p]
+                l0 = float(u)
+                l1 = float(t)
+                l2 = (u * u - t * t) * hq
+                l3 = u * t * hq
+                m += theta[K] * l0
+                m += theta[K + 1] * l1
+                m += theta[K + 2] * l2
+                m += theta[K + 3] * l3
                 res = float(img[i, j]) - m
                 # weights: 1 / variance, the background's n2 plus the shot noise of the image (gw per count)
                 wt = 1.0 / (n2 + gw * max(m, 0.0))
@@ -320,24 +321,87 @@ def _profile_one(img, r, c, half, x0, y0, n2, gw, out):
                 res *= wt
                 ddxw = ddx * wt
                 ddyw = ddy * wt
-                # only the lower triangle of the linear block (the Cholesky reads no other; mirrored below for
-                # the LU fallback): half the scattered updates, each entry the same products as the full matrix's
-                # lower triangle. The spline indices (positions < nz) are all below the linear ones (K..K+3)
-                for p in range(nzz):
+                # the normal equations' sums, each entry the same products in the same pixel order as a full
+                # matrix's lower triangle (the Cholesky reads no other; mirrored below for the LU fallback).
+                # Spline rows (indices < K, scattered by the knots) in A; the background rows, whose indices
+                # are fixed, and the centre's entries in scalars (a scattered update through memory costs
+                # several times a register add)
+                for p in range(nz):
                     ip = idx[p]
                     rhs[ip, 0] += val[p] * res
                     vp = val[p] * wt
-                    for q in range(p + 1 if p >= nz else nz):
+                    for q in range(nz):
                         iq = idx[q]
                         if iq <= ip:
                             A[ip, iq] += vp * val[q]
                     A[ip, IX] += vp * ddx
                     A[ip, IY] += vp * ddy
-                rhs[IX, 0] += ddx * res
-                rhs[IY, 0] += ddy * res
-                A[IX, IX] += ddxw * ddx
-                A[IX, IY] += ddxw * ddy
-                A[IY, IY] += ddyw * ddy
+                vp = l0 * wt
+                r0_ += l0 * res
+                for q in range(nz):
+                    A[K, idx[q]] += vp * val[q]
+                a00 += vp * l0
+                x0_ += vp * ddx
+                y0_ += vp * ddy
+                vp = l1 * wt
+                r1_ += l1 * res
+                for q in range(nz):
+                    A[K + 1, idx[q]] += vp * val[q]
+                a10 += vp * l0
+                a11 += vp * l1
+                x1_ += vp * ddx
+                y1_ += vp * ddy
+                vp = l2 * wt
+                r2_ += l2 * res
+                for q in range(nz):
+                    A[K + 2, idx[q]] += vp * val[q]
+                a20 += vp * l0
+                a21 += vp * l1
+                a22 += vp * l2
+                x2_ += vp * ddx
+                y2_ += vp * ddy
+                vp = l3 * wt
+                r3_ += l3 * res
+                for q in range(nz):
+                    A[K + 3, idx[q]] += vp * val[q]
+                a30 += vp * l0
+                a31 += vp * l1
+                a32 += vp * l2
+                a33 += vp * l3
+                x3_ += vp * ddx
+                y3_ += vp * ddy
+                rx_ += ddx * res
+                ry_ += ddy * res
+                axx += ddxw * ddx
+                axy += ddxw * ddy
+                ayy += ddyw * ddy
+        rhs[K, 0] = r0_
+        rhs[K + 1, 0] = r1_
+        rhs[K + 2, 0] = r2_
+        rhs[K + 3, 0] = r3_
+        rhs[IX, 0] = rx_
+        rhs[IY, 0] = ry_
+        A[K, K] = a00
+        A[K + 1, K] = a10
+        A[K + 1, K + 1] = a11
+        A[K + 2, K] = a20
+        A[K + 2, K + 1] = a21
+        A[K + 2, K + 2] = a22
+        A[K + 3, K] = a30
+        A[K + 3, K + 1] = a31
+        A[K + 3, K + 2] = a32
+        A[K + 3, K + 3] = a33
+        A[K, IX] = x0_
+        A[K + 1, IX] = x1_
+        A[K + 2, IX] = x2_
+        A[K + 3, IX] = x3_
+        A[K, IY] = y0_
+        A[K + 1, IY] = y1_
+        A[K + 2, IY] = y2_
+        A[K + 3, IY] = y3_
+        A[IX, IX] = axx
+        A[IX, IY] = axy
+        A[IY, IY] = ayy
         if npix <= npar + 2:
             return False
         for q in range(NL):
