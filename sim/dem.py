@@ -40,11 +40,11 @@ import math
 import time
 
 import numpy as np
-from numba import njit, types
+from numba import njit, prange, types
 from numba.extending import overload
 
 from sim.forces.contact import (CONTACT_NONE, D_MAX_DAMP, D_MAX_OVERLAP, D_MAX_OVERLAP_I, D_MAX_W2, D_N_CONTACTS, D_SIZE,
-                                _pair_rows, pair_forces_parallel, wall_forces)
+                                _pair_rows, pair_forces_parallel, thread_blocks, wall_forces)
 from sim.forces.body import magnetic_force
 from sim.forces.brownian import brownian_sigma
 from sim.forces.drag import drag_force_scalar
@@ -152,21 +152,30 @@ def _forces(pos, vel, omega, radius, mass, charge, gamma, fconst, drag_mode, ext
 
 @njit(cache=True)
 def _interaction_forces(pos, vel, omega, radius, mass, charge, model, cp, cpw, pair_laws, wall_laws, rotation,
-                        walls, whist, start, nbj, shift, hist, force, torque, dt, diag, fbuf, tbuf, dbuf, pairs):
-    """Add the pair forces (``pairs``: contact or non-contact laws on; threaded with the per-thread
-    buffers ``fbuf``, ``tbuf``, ``dbuf``, serial when ``fbuf`` is None: the branch is pruned at compile
-    time, so a serial run never compiles the threaded kernel) and the wall contact and wall laws to
-    ``force``, ``torque``."""
-    if pairs:
-        if fbuf is None:
+                        walls, whist, start, nbj, shift, hist, force, torque, dt, diag, fbuf, tbuf, dbuf, pairs,
+                        blocks=None):
+    """Add the pair forces (``pairs``: contact or non-contact laws on) and the wall contact and wall laws
+    to ``force``, ``torque``.  Serial when ``fbuf`` is None; else threaded with the per-thread buffers
+    ``fbuf``, ``tbuf``, ``dbuf`` (:func:`sim.forces.contact.pair_forces_parallel`) over ``blocks`` (the
+    list's :func:`sim.forces.contact.thread_blocks`, computed here when not given).  The branches are
+    pruned at compile time, so a serial run never compiles the threaded kernel."""
+    wall_contacts = walls.shape[0] > 0 and model != CONTACT_NONE
+    if fbuf is None:
+        if pairs:
             # sim.forces.contact.pair_forces, without its wrapper (each wrapper level costs compile time)
-            _pair_rows(0, pos.shape[0], pos, vel, omega, radius, mass, charge, start, nbj, shift, hist, force,
-                       torque, model, cp, pair_laws, rotation, dt, diag)
+            n = pos.shape[0]
+            _pair_rows(0, n, pos, vel, omega, radius, mass, charge, start, nbj, shift, hist, force,
+                       torque, model, cp, pair_laws, rotation, dt, diag, n, force, torque)
+        if wall_contacts:
+            wall_forces(pos, vel, omega, radius, mass, walls, whist, force, torque, model, cpw, rotation, dt, diag)
+    else:
+        if blocks is None:
+            rows, halo_start, halo_idx = thread_blocks(start, nbj, fbuf.shape[0])
         else:
-            pair_forces_parallel(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist, force, torque,
-                                 model, cp, pair_laws, rotation, dt, diag, fbuf, tbuf, dbuf)
-    if walls.shape[0] > 0 and model != CONTACT_NONE:
-        wall_forces(pos, vel, omega, radius, mass, walls, whist, force, torque, model, cpw, rotation, dt, diag)
+            rows, halo_start, halo_idx = blocks
+        pair_forces_parallel(rows, halo_start, halo_idx, pos, vel, omega, radius, mass, charge, start, nbj,
+                             shift, hist, force, torque, model, cp, pair_laws, rotation, dt, diag, fbuf, tbuf,
+                             dbuf, pairs, walls, whist, cpw, wall_contacts)
     if walls.shape[0] > 0 and wall_laws.shape[0] > 0:
         wall_law_forces(pos, radius, charge, walls, wall_laws, force)
 
@@ -351,6 +360,59 @@ def _kick_drift(pos, vel, omega, force, torque, kick, ref_pos, dt, rotation, ski
     return d2max > 0.25 * skin * skin, st, p, w2, sx, sy, sz
 
 
+@njit(cache=True, parallel=True)
+def _kick_drift_parallel(nt, pos, vel, omega, force, torque, kick, ref_pos, dt, rotation, skin, ext, fconst, radius,
+                         charge, gamma, drag_mode, extp, seed, step, pending, guards, near, ux, uy, uz, out):
+    """:func:`_kick_drift` on ``nt`` threads, each over one block of equal particle count (row slices: the
+    same arithmetic per particle).  ``out`` (nt, 7): per-block results, combined in block order: the skin
+    test of any block, the first failing particle, the largest ``w2``, the sums block by block (they
+    differ from the serial sums by round-off; they only set the near sub-list's travel bound).  The
+    particle index inside a block is used only for Brownian numbers, which ``ext`` excludes."""
+    n = pos.shape[0]
+    for t in prange(nt):
+        i0 = (t * n) // nt
+        i1 = ((t + 1) * n) // nt
+        if i1 > i0:
+            rb, st, p, w2, sx, sy, sz = _kick_drift(pos[i0:i1], vel[i0:i1], omega[i0:i1], force[i0:i1],
+                                                    torque[i0:i1], kick[:, i0:i1], ref_pos[i0:i1], dt, rotation,
+                                                    skin, ext, fconst[i0:i1], radius[i0:i1], charge[i0:i1],
+                                                    gamma[i0:i1], drag_mode, extp, seed, step, pending, guards,
+                                                    near, ux, uy, uz)
+            out[t, 0] = 1.0 if rb else 0.0
+            out[t, 1] = st
+            out[t, 2] = p + i0 if p >= 0 else -1
+            out[t, 3] = w2
+            out[t, 4] = sx
+            out[t, 5] = sy
+            out[t, 6] = sz
+        else:
+            out[t, 0] = 0.0
+            out[t, 1] = OK
+            out[t, 2] = -1
+            out[t, 3] = 0.0
+            out[t, 4] = 0.0
+            out[t, 5] = 0.0
+            out[t, 6] = 0.0
+    rebuild = False
+    st = OK
+    p = -1
+    w2 = 0.0
+    sx = 0.0
+    sy = 0.0
+    sz = 0.0
+    for t in range(nt):
+        rebuild = rebuild or out[t, 0] != 0.0
+        if p < 0 and out[t, 2] >= 0:
+            st = int(out[t, 1])
+            p = int(out[t, 2])
+        if out[t, 3] > w2:
+            w2 = out[t, 3]
+        sx += out[t, 4]
+        sy += out[t, 5]
+        sz += out[t, 6]
+    return rebuild, st, p, w2, sx, sy, sz
+
+
 @njit(cache=True)
 def _begin_forces(vel, radius, charge, gamma, fconst, drag_mode, extp, seed, step, dt, rotation, force,
                   torque, diag):
@@ -512,7 +574,7 @@ def _run_verlet(nsteps, dt, step0, phi, n_iter,
     """Up to ``nsteps`` velocity-Verlet steps (kick-drift-kick; velocity-dependent forces use the
     half-step velocity, as in LAMMPS).
 
-    Near sub-list (``guards[G_NEAR]`` = margin > 0, serial pair kernel): the pair forces are taken over
+    Near sub-list (``guards[G_NEAR]`` = margin > 0): the pair forces are taken over
     the pairs of the list closer than ``max(R_i + R_j, cutoff) + margin`` (:func:`sim.neighbors.inner_list`,
     order kept), re-filtered from the whole list at every rebuild and once the distance of two particles
     may have shrunk by 0.9 margin since the last filtering: every step adds ``2 dt max_i |v_i - u|`` to
@@ -535,10 +597,20 @@ def _run_verlet(nsteps, dt, step0, phi, n_iter,
     # step of the call), unless guards[G_PLAIN]; ``pending``: the last step's second half kick is owed
     fuse = guards[G_PLAIN] == 0.0
     pending = False
-    # the near sub-list (l*: the list the pair kernel is given); threaded kernel: no (its row blocks are
-    # split by pair count, so its sums depend on the list)
+    # the near sub-list (l*: the list the pair kernel is given)
     margin = guards[G_NEAR]
-    near = pairs and fbuf is None and margin > 0.0 and n > 0
+    near = pairs and margin > 0.0 and n > 0
+    # threads: the pair kernel's row blocks and halos of the list it is given, recomputed when that
+    # list changes (``stale``), and the kick-drift pass's per-block results
+    # (``fbuf is not None`` in each test, not a flag: numba prunes those branches at compile time)
+    nt = 1
+    if fbuf is not None:
+        nt = fbuf.shape[0]
+    kd_out = np.empty((nt, 7))
+    stale = True
+    rows = np.empty(0, dtype=np.int64)
+    halo_start = np.empty(0, dtype=np.int64)
+    halo_idx = np.empty(0, dtype=np.int64)
     if near:
         lstart, lnbj, lshift, lhist, kmap = inner_list(pos, radius, cutoff, margin, start, nbj, shift, hist)
         chunk_peaks[P_NEAR_FILTERS] += 1.0
@@ -553,10 +625,17 @@ def _run_verlet(nsteps, dt, step0, phi, n_iter,
         # (last step's second half kick and checks +) kick + drift + skin test (+ external forces and the
         # zeroing) in one pass: the arithmetic of the half kicks, the checks, the drift, needs_rebuild and
         # _forces in the same order per particle, so the results are those of the separate loops bit for bit
-        rebuild, cst, cpart, w2, sx, sy, sz = _kick_drift(pos, vel, omega, force, torque, kick, ref_pos, dt,
-                                                          rotation, skin, ext, fconst, radius, charge, gamma,
-                                                          drag_mode, extp, seed, step, pending, guards, near,
-                                                          ux, uy, uz)
+        if fbuf is not None:
+            rebuild, cst, cpart, w2, sx, sy, sz = _kick_drift_parallel(nt, pos, vel, omega, force, torque, kick,
+                                                                       ref_pos, dt, rotation, skin, ext, fconst,
+                                                                       radius, charge, gamma, drag_mode, extp, seed,
+                                                                       step, pending, guards, near, ux, uy, uz,
+                                                                       kd_out)
+        else:
+            rebuild, cst, cpart, w2, sx, sy, sz = _kick_drift(pos, vel, omega, force, torque, kick, ref_pos, dt,
+                                                              rotation, skin, ext, fconst, radius, charge, gamma,
+                                                              drag_mode, extp, seed, step, pending, guards, near,
+                                                              ux, uy, uz)
         if cst != OK:
             # the end state of step s failed a check; this pass has moved particles on past it
             if near:
@@ -577,6 +656,7 @@ def _run_verlet(nsteps, dt, step0, phi, n_iter,
             if order is not None:  # the rebuild re-ordered the particles
                 _kick_factors(mass, inertia, hdt, rotation, kick)
             nbuild += 1
+            stale = True
             if near:
                 lstart, lnbj, lshift, lhist, kmap = inner_list(pos, radius, cutoff, margin, start, nbj, shift,
                                                                hist)
@@ -589,8 +669,13 @@ def _run_verlet(nsteps, dt, step0, phi, n_iter,
             lstart, lnbj, lshift, lhist, kmap = inner_list(pos, radius, cutoff, margin, start, nbj, shift, hist)
             travel = 0.0
             chunk_peaks[P_NEAR_FILTERS] += 1.0
+            stale = True
         if near:
             chunk_peaks[P_NEAR_PAIRS] = lnbj.shape[0]
+        if fbuf is not None:
+            if stale:
+                rows, halo_start, halo_idx = thread_blocks(lstart, lnbj, nt)
+                stale = False
         if ext:
             for k in range(D_SIZE):
                 diag[k] = 0.0
@@ -599,7 +684,7 @@ def _run_verlet(nsteps, dt, step0, phi, n_iter,
                           torque, diag)
         _interaction_forces(pos, vel, omega, radius, mass, charge, model, cp, cpw, pair_laws, wall_laws,
                             rotation, walls, whist, lstart, lnbj, lshift, lhist, force, torque, dt, diag, fbuf,
-                            tbuf, dbuf, pairs)
+                            tbuf, dbuf, pairs, (rows, halo_start, halo_idx))
         t_done += dt
         if fuse:
             # the checks of the forces (overlap) and of the time now, those of the kicked state later
@@ -1035,7 +1120,7 @@ class DEMSystem:
         the serial one (see :func:`_interaction_forces`)."""
         t = int(self.threads)
         if t > 1:
-            return np.zeros((t, self.n, 3)), np.zeros((t, self.n, 3)), np.zeros((t, D_SIZE))
+            return np.zeros((t, self.n, 3)), np.zeros((t, self.n, 3)), np.zeros((2 * t, D_SIZE))
         return None, None, None
 
     @property
@@ -1061,7 +1146,7 @@ class DEMSystem:
         """
         self.chunk_peaks = np.zeros(5)
         stepper = STEPPERS[self.integrator]
-        fbuf, tbuf, dbuf = self._buffers()  # once per call (the threaded kernel zeroes them per force pass)
+        fbuf, tbuf, dbuf = self._buffers()  # once per call (zeros: the threaded kernel leaves its halo buffers zero)
         left = int(nsteps)
         status = OK
         t0 = self.t

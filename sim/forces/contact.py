@@ -219,11 +219,15 @@ def _hooke_mass_terms(model, cp, meff):
 
 @njit(cache=True)
 def _pair_rows(i0, i1, pos, vel, omega, radius, mass, charge, start, nbj, shift, hist,
-               force, torque, model, cp, laws, rotation, dt, diag):
+               force, torque, model, cp, laws, rotation, dt, diag, jlim, hforce, htorque):
     """Pair forces of the list rows ``i0 <= i < i1`` (partners j anywhere).
 
     ``laws``: the non-contact law table of :mod:`sim.forces.nearfield` (L, LAW_WIDTH), summed
     for every listed pair; L = 0 for contact only.
+
+    A partner's share goes to ``force[j]``, ``torque[j]`` when ``j < jlim`` and to ``hforce[j]``,
+    ``htorque[j]`` otherwise (the threaded kernel, :func:`pair_forces_parallel`: a thread writes only
+    the rows it owns and a halo buffer; the serial kernel gives ``jlim = n``, so the same arithmetic).
     """
     far_laws = laws.shape[0] > 0
     nl = laws.shape[0]
@@ -329,9 +333,14 @@ def _pair_rows(i0, i1, pos, vel, omega, radius, mass, charge, start, nbj, shift,
                     txi -= ri * cx
                     tyi -= ri * cy
                     tzi -= ri * cz
-                    torque[j, 0] -= rj * cx
-                    torque[j, 1] -= rj * cy
-                    torque[j, 2] -= rj * cz
+                    if j < jlim:
+                        torque[j, 0] -= rj * cx
+                        torque[j, 1] -= rj * cy
+                        torque[j, 2] -= rj * cz
+                    else:
+                        htorque[j, 0] -= rj * cx
+                        htorque[j, 1] -= rj * cy
+                        htorque[j, 2] -= rj * cz
             elif hist[k, 0] != 0.0 or hist[k, 1] != 0.0 or hist[k, 2] != 0.0:
                 hist[k, 0] = 0.0
                 hist[k, 1] = 0.0
@@ -347,9 +356,14 @@ def _pair_rows(i0, i1, pos, vel, omega, radius, mass, charge, start, nbj, shift,
             fxi += fx
             fyi += fy
             fzi += fz
-            force[j, 0] -= fx
-            force[j, 1] -= fy
-            force[j, 2] -= fz
+            if j < jlim:
+                force[j, 0] -= fx
+                force[j, 1] -= fy
+                force[j, 2] -= fz
+            else:
+                hforce[j, 0] -= fx
+                hforce[j, 1] -= fy
+                hforce[j, 2] -= fz
         force[i, 0] += fxi
         force[i, 1] += fyi
         force[i, 2] += fzi
@@ -370,53 +384,102 @@ def pair_forces(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist,
     receives max overlap ratio, its particle, max k/m, max eta/m, contacts.
     """
     _pair_rows(0, pos.shape[0], pos, vel, omega, radius, mass, charge, start, nbj, shift, hist,
-               force, torque, model, cp, laws, rotation, dt, diag)
+               force, torque, model, cp, laws, rotation, dt, diag, pos.shape[0], force, torque)
+
+
+@njit(cache=True)
+def thread_blocks(start, nbj, nt):
+    """Split a half neighbour list into ``nt`` blocks of consecutive rows for :func:`pair_forces_parallel`.
+
+    Returns ``(rows, halo_start, halo_idx)``: block t holds the rows ``rows[t] <= i < rows[t + 1]``
+    (about equal cost, counted as one per row plus one per listed pair), and ``halo_idx[halo_start[t]:
+    halo_start[t + 1]]`` are the distinct partners ``j >= rows[t + 1]`` of its rows, in first-seen
+    order: the only rows of another block that block t writes (a half list has ``j > i``).
+    """
+    n = start.shape[0] - 1
+    rows = np.empty(nt + 1, dtype=np.int64)
+    rows[0] = 0
+    rows[nt] = n
+    total = start[n] + n
+    i = 0
+    for t in range(1, nt):
+        goal = (t * total) // nt
+        while i < n and start[i] + i < goal:
+            i += 1
+        rows[t] = i
+    halo_start = np.zeros(nt + 1, dtype=np.int64)
+    halo_idx = np.empty(start[n], dtype=np.int64)
+    mark = np.full(n, -1, dtype=np.int64)
+    q = 0
+    for t in range(nt - 1):
+        lim = rows[t + 1]
+        for k in range(start[rows[t]], start[lim]):
+            j = nbj[k]
+            if j >= lim and mark[j] != t:
+                mark[j] = t
+                halo_idx[q] = j
+                q += 1
+        halo_start[t + 1] = q
+    halo_start[nt] = q
+    return rows, halo_start, halo_idx[:q]
 
 
 @njit(cache=True, parallel=True)
-def pair_forces_parallel(pos, vel, omega, radius, mass, charge, start, nbj, shift, hist,
-                         force, torque, model, cp, laws, rotation, dt, diag, fbuf, tbuf, dbuf):
-    """Threaded :func:`pair_forces`: the list rows are split into ``T = fbuf.shape[0]``
-    blocks of equal pair count, each block accumulates into its own buffer
-    (no write conflicts; contact history entries belong to one row), and the
-    buffers are summed in a fixed order, so the result is deterministic for a
-    given ``T`` (it differs from the serial sum only by round-off)."""
-    n = pos.shape[0]
-    nt = fbuf.shape[0]
-    m = start[n]
+def pair_forces_parallel(rows, halo_start, halo_idx, pos, vel, omega, radius, mass, charge, start, nbj, shift,
+                         hist, force, torque, model, cp, laws, rotation, dt, diag, fbuf, tbuf, dbuf, pairs,
+                         walls, whist, cpw, wall_contacts):
+    """Threaded pair forces (``pairs``) and wall contact forces (``wall_contacts``), added to ``force``
+    and ``torque``, over the blocks of :func:`thread_blocks` (``T = rows.shape[0] - 1`` threads).
+
+    Thread t owns the rows of its block: it adds their pair sums and their shares of pairs with partners
+    in the block straight into ``force``/``torque``, and its shares for partners of later blocks into its
+    halo buffers ``fbuf[t]``, ``tbuf[t]`` ((T, N, 3), zero on entry and left zero: only the rows in its
+    halo list are added to ``force`` afterwards and cleared); the wall contacts of its own particles follow.
+    Contact history entries belong to one row, and wall history to one particle, so no two threads write
+    the same memory.  ``dbuf`` (2T, D_SIZE): per-thread pair and wall diagnostics, combined in a fixed order.
+    The result is deterministic for a given T and list; it differs from the serial sums only by the order
+    of the additions (round-off).
+    """
+    nt = rows.shape[0] - 1
+    nw = walls.shape[0]
     for t in prange(nt):
-        # rows [i0, i1) holding about m / nt pairs each
-        i0 = np.searchsorted(start, (t * m) // nt)
-        i1 = np.searchsorted(start, ((t + 1) * m) // nt) if t < nt - 1 else n
-        if t == 0:
-            i0 = 0
-        fb = fbuf[t]
-        tb = tbuf[t]
-        fb[:, :] = 0.0
-        tb[:, :] = 0.0
+        i0 = rows[t]
+        i1 = rows[t + 1]
         for k in range(D_SIZE):
             dbuf[t, k] = 0.0
+            dbuf[nt + t, k] = 0.0
         if i1 > i0:
-            _pair_rows(i0, i1, pos, vel, omega, radius, mass, charge, start, nbj, shift, hist,
-                       fb, tb, model, cp, laws, rotation, dt, dbuf[t])
-    for i in prange(n):
-        for t in range(nt):
-            force[i, 0] += fbuf[t, i, 0]
-            force[i, 1] += fbuf[t, i, 1]
-            force[i, 2] += fbuf[t, i, 2]
+            if pairs:
+                _pair_rows(i0, i1, pos, vel, omega, radius, mass, charge, start, nbj, shift, hist, force, torque,
+                           model, cp, laws, rotation, dt, dbuf[t], i1, fbuf[t], tbuf[t])
+            if wall_contacts:
+                # the wall kernel on this block's particles (slices: its particle index is local)
+                wall_forces(pos[i0:i1], vel[i0:i1], omega[i0:i1], radius[i0:i1], mass[i0:i1], walls,
+                            whist[i0 * nw:i1 * nw], force[i0:i1], torque[i0:i1], model, cpw, rotation, dt,
+                            dbuf[nt + t])
+                dbuf[nt + t, D_MAX_OVERLAP_I] += i0
+    for t in range(nt - 1):
+        hf = fbuf[t]
+        ht = tbuf[t]
+        for q in range(halo_start[t], halo_start[t + 1]):
+            j = halo_idx[q]
+            for c in range(3):
+                force[j, c] += hf[j, c]
+                hf[j, c] = 0.0
             if rotation:
-                torque[i, 0] += tbuf[t, i, 0]
-                torque[i, 1] += tbuf[t, i, 1]
-                torque[i, 2] += tbuf[t, i, 2]
-    for t in range(nt):
-        if dbuf[t, 0] > diag[0]:
-            diag[0] = dbuf[t, 0]
-            diag[1] = dbuf[t, 1]
-        if dbuf[t, 2] > diag[2]:
-            diag[2] = dbuf[t, 2]
-        if dbuf[t, 3] > diag[3]:
-            diag[3] = dbuf[t, 3]
-        diag[4] += dbuf[t, 4]
+                for c in range(3):
+                    torque[j, c] += ht[j, c]
+                    ht[j, c] = 0.0
+    # pairs before walls, blocks in order: the serial kernel's order of the strict maxima
+    for t in range(2 * nt):
+        if dbuf[t, D_MAX_OVERLAP] > diag[D_MAX_OVERLAP]:
+            diag[D_MAX_OVERLAP] = dbuf[t, D_MAX_OVERLAP]
+            diag[D_MAX_OVERLAP_I] = dbuf[t, D_MAX_OVERLAP_I]
+        if dbuf[t, D_MAX_W2] > diag[D_MAX_W2]:
+            diag[D_MAX_W2] = dbuf[t, D_MAX_W2]
+        if dbuf[t, D_MAX_DAMP] > diag[D_MAX_DAMP]:
+            diag[D_MAX_DAMP] = dbuf[t, D_MAX_DAMP]
+        diag[D_N_CONTACTS] += dbuf[t, D_N_CONTACTS]
 
 
 @njit(cache=True, inline="always")
