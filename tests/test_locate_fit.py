@@ -217,3 +217,21 @@ def test_two_spot_least_squares_evaluation_is_the_generic_one_bit_for_bit():
             out.append((f, J.copy(), g.copy()))
         assert out[0][0] == out[1][0]
         assert np.array_equal(out[0][1], out[1][1]) and np.array_equal(out[0][2], out[1][2])
+
+
+def test_written_out_gauss_newton_matrices_are_the_generic_one_bit_for_bit():
+    # _ls_fisher1 / _ls_fisher2 (one and two spots) against the term-list loops of _ls_fisher, on arbitrary
+    # column and row functions (not only erf profiles) and amplitudes of either sign
+    rng = np.random.default_rng(17)
+    for K, fn in ((1, F._ls_fisher1), (2, F._ls_fisher2)):
+        for trial in range(50):
+            nr, nc = int(rng.integers(3, 26)), int(rng.integers(3, 26))
+            w = F._work(K, max(nr, nc))
+            FX, FY = w[0], w[1]
+            FX[:3 * K] = rng.normal(0, 1, FX[:3 * K].shape) * 10.0 ** rng.uniform(-3, 1)
+            FY[:3 * K] = rng.normal(0, 1, FY[:3 * K].shape) * 10.0 ** rng.uniform(-3, 1)
+            th = rng.normal(0, 1, 3 * K + 2) * 10.0 ** rng.uniform(-1, 4)
+            J0, J1 = np.zeros((3 * K + 2, 3 * K + 2)), np.full((3 * K + 2, 3 * K + 2), np.nan)
+            F._ls_fisher(th, K, nr, nc, FX, FY, J0, w[10], w[11], w[13], w[14], w[15], w[16])
+            fn(th, nr, nc, FX, FY, J1)
+            assert np.array_equal(J0, J1)
