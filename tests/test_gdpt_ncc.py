@@ -6,8 +6,9 @@ import pytest
 from ptrack.gdpt import ncc as N
 
 
-@pytest.mark.parametrize("T,m", [(5, 1), (17, 4), (51, 2), (51, 4), (75, 5)])
+@pytest.mark.parametrize("T,m", [(5, 1), (17, 4), (51, 2), (51, 4), (75, 5), (93, 1), (121, 2)])
 def test_direct_matches_opencv(T, m):
+    # up to 75 px: each shift one flat dot product; 93 and 121 px span more than FLAT_MAX: row by row
     rng = np.random.default_rng(T * 10 + m)
     yy, xx = np.mgrid[:T, :T] - T // 2
     t = (np.exp(-(xx ** 2 + yy ** 2) / (0.1 * T * T)) + 0.05 * rng.random((T, T))).astype(np.float32)
@@ -18,6 +19,18 @@ def test_direct_matches_opencv(T, m):
     assert got.shape == ref.shape and got.dtype == np.float32
     assert (2 * m + 1) ** 2 <= N.DIRECT_MAX
     np.testing.assert_allclose(got, ref, atol=2e-6)
+
+
+def test_zero_mean_templates_are_cached_per_templates_object():
+    rng = np.random.default_rng(8)
+    tm = N.Templates(rng.random((T, T)).astype(np.float32) for T in (5, 8, 13))
+    zflat, tns = tm.zero_mean
+    assert tm.zero_mean[0] is zflat
+    flat, offs, sizes = tm.packed
+    for k, t in enumerate(tm):
+        z = zflat[offs[k]:offs[k] + t.size].reshape(t.shape)
+        np.testing.assert_allclose(z, t - t.astype(np.float64).mean(), atol=1e-6)
+        assert abs(tns[k] - float(((t - t.astype(np.float64).mean()) ** 2).sum())) < 1e-5 * tns[k]
 
 
 def test_constant_window_is_minus_one():

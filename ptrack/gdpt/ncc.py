@@ -15,21 +15,18 @@ from numba import njit
 __all__ = ["ncc", "ncc_pages", "ncc_pages_strided", "DIRECT_MAX"]
 
 DIRECT_MAX = 121     # shifts (rows x cols of the map) up to which the direct sum is used (11 x 11)
+FLAT_MAX = 8192      # template span (px, see _ncc_map) up to which a shift's sum is one flat dot product
 
 
 @njit(cache=True, fastmath=True)
-def _setup(win, t):
-    # what every correlation map needs besides the dot products: the zero-mean template and its sum of squares,
-    # and the window's sums and sums of squares at every shift from double-precision integral images (the
-    # variance is a difference of two large sums)
+def _zero_mean(t):
+    # the zero-mean template and its sum of squares
     T0, T1 = t.shape
-    H, W = win.shape
-    N = T0 * T1
     tm = 0.0
     for a in range(T0):
         for b in range(T1):
             tm += t[a, b]
-    tm /= N
+    tm /= T0 * T1
     tz = np.empty((T0, T1), np.float32)
     tn = 0.0
     for a in range(T0):
@@ -37,50 +34,132 @@ def _setup(win, t):
             v = t[a, b] - tm
             tz[a, b] = v
             tn += v * v
-    S1 = np.zeros((H + 1, W + 1))
-    S2 = np.zeros((H + 1, W + 1))
-    for a in range(H):
-        r1 = 0.0
-        r2 = 0.0
-        for b in range(W):
-            w = np.float64(win[a, b])
-            r1 += w
-            r2 += w * w
-            S1[a + 1, b + 1] = S1[a, b + 1] + r1
-            S2[a + 1, b + 1] = S2[a, b + 1] + r2
-    return tz, tn, S1, S2
+    return tz, tn
 
 
 @njit(cache=True, fastmath=True)
-def _ncc_direct(win, t):
-    # a contiguous copy of the window (a few thousand floats): with a slice's unknown strides the inner dot
-    # product is not vectorised (a 49 px template at 9 x 9 shifts: 109 -> 24 us)
-    win = np.ascontiguousarray(win)
-    T0, T1 = t.shape
+def _window_sums(win, T0, T1):
+    # the (contiguous) window's sum and sum of squares over the template's footprint at every shift, (2, ny, nx), in
+    # double precision (the variance is a difference of two large sums): each column's T0-row sum, slid down the
+    # rows, then T1-column sums of those, slid along; vectorised over the columns (two whole-window integral
+    # images, added serially, cost 2-4x as much)
     H, W = win.shape
     ny, nx = H - T0 + 1, W - T1 + 1
-    N = T0 * T1
-    tz, tn, S1, S2 = _setup(win, t)
-    out = np.empty((ny, nx), np.float32)
-    acc = np.empty(nx, np.float32)
+    c1 = np.zeros(W)
+    c2 = np.zeros(W)
+    out = np.empty((2, ny, nx))
+    for a in range(T0):
+        r = win[a]
+        for b in range(W):
+            w = np.float64(r[b])
+            c1[b] += w
+            c2[b] += w * w
     for i in range(ny):
-        acc[:] = 0.0
+        if i > 0:
+            r0 = win[i - 1]
+            r1 = win[i + T0 - 1]
+            for b in range(W):
+                w0 = np.float64(r0[b])
+                w1 = np.float64(r1[b])
+                c1[b] += w1 - w0
+                c2[b] += w1 * w1 - w0 * w0
+        s1 = 0.0
+        s2 = 0.0
+        for b in range(T1):
+            s1 += c1[b]
+            s2 += c2[b]
+        out[0, i, 0] = s1
+        out[1, i, 0] = s2
+        for j in range(1, nx):
+            s1 += c1[j + T1 - 1] - c1[j - 1]
+            s2 += c2[j + T1 - 1] - c2[j - 1]
+            out[0, i, j] = s1
+            out[1, i, j] = s2
+    return out
+
+
+@njit(cache=True, fastmath=True)
+def _dot(a, b):
+    # the dot product of two float32 rows (a function of its own: inlined, its loop is vectorised, which the same
+    # loop written inside the shift loops is not when the shift has a stride)
+    s = np.float32(0.0)
+    for k in range(a.shape[0]):
+        s += a[k] * b[k]
+    return s
+
+
+@njit(cache=True, fastmath=True)
+def _dot4(w0, w1, w2, w3, t):
+    # four dot products with one vector t in one pass (t loaded once for four sums). Each sum is formed the same
+    # way whichever of the four it is: a shift's correlation does not depend on the shifts computed beside it
+    s0 = np.float32(0.0)
+    s1 = np.float32(0.0)
+    s2 = np.float32(0.0)
+    s3 = np.float32(0.0)
+    for k in range(t.shape[0]):
+        v = t[k]
+        s0 += w0[k] * v
+        s1 += w1[k] * v
+        s2 += w2[k] * v
+        s3 += w3[k] * v
+    return s0, s1, s2, s3
+
+
+@njit(cache=True, fastmath=True)
+def _ncc_map(win, tz, tn, step):
+    # the correlation map of zero-mean template tz (sum of squares tn) at every ``step``-th shift in each axis (1:
+    # all). A shift's sum over the template is one dot product of the flattened window from the shift's corner with
+    # the template laid out on the window's row length (zeros between its rows): long vectorised loops instead of
+    # a short dot per template row, whose scalar tail (T1 mod 32 terms) took a third of the time at T1 = 51; four
+    # shifts per pass share the template's loads. Templates spanning more than FLAT_MAX px (refine_full's at full
+    # resolution, whose flat layout leaves the cache): row by row
+    T0, T1 = tz.shape
+    H, W = win.shape
+    ny, nx = (H - T0) // step + 1, (W - T1) // step + 1
+    N = T0 * T1
+    # a contiguous copy of the window (a few thousand floats): with a slice's unknown strides the loops over a row
+    # are not vectorised
+    wc = np.ascontiguousarray(win)
+    S = _window_sums(wc, T0, T1)
+    acc = np.zeros((ny, nx), np.float32)
+    L = (T0 - 1) * W + T1
+    if L <= FLAT_MAX:
+        wf = wc.ravel()
+        tp = np.zeros(L, np.float32)
         for a in range(T0):
-            row = win[i + a]
-            trow = tz[a]
-            for j in range(nx):
-                s = np.float32(0.0)
-                for b in range(T1):
-                    s += row[j + b] * trow[b]
-                acc[j] += s
-        for j in range(nx):
-            s1 = S1[i + T0, j + T1] - S1[i, j + T1] - S1[i + T0, j] + S1[i, j]
-            s2 = S2[i + T0, j + T1] - S2[i, j + T1] - S2[i + T0, j] + S2[i, j]
-            d = np.sqrt(max(s2 - s1 * s1 / N, 0.0) * tn)
+            tp[a * W:a * W + T1] = tz[a]
+        # the shifts in row-major order, four at a time (the last group repeats the last shift: computed, not stored)
+        nsh = ny * nx
+        o = np.empty(4, np.int64)
+        for g in range(0, nsh, 4):
+            for q in range(4):
+                k = min(g + q, nsh - 1)
+                o[q] = (k // nx) * step * W + (k % nx) * step
+            s = _dot4(wf[o[0]:o[0] + L], wf[o[1]:o[1] + L], wf[o[2]:o[2] + L], wf[o[3]:o[3] + L], tp)
+            for q in range(min(4, nsh - g)):
+                acc[(g + q) // nx, (g + q) % nx] = s[q]
+    else:
+        for ii in range(ny):
+            for a in range(T0):
+                row = wc[ii * step + a]
+                trow = tz[a]
+                for jj in range(nx):
+                    acc[ii, jj] += _dot(row[jj * step:jj * step + T1], trow)
+    out = np.empty((ny, nx), np.float32)
+    for ii in range(ny):
+        for jj in range(nx):
+            s1 = S[0, ii * step, jj * step]
+            d = np.sqrt(max(S[1, ii * step, jj * step] - s1 * s1 / N, 0.0) * tn)
             # a constant window (zero padding) or template: no correlation (OpenCV gives NaN there, which the
             # callers turn into -1)
-            out[i, j] = acc[j] / d if d > 0 else -1.0
+            out[ii, jj] = acc[ii, jj] / d if d > 0 else -1.0
     return out
+
+
+@njit(cache=True)
+def _ncc_direct(win, t):
+    tz, tn = _zero_mean(t)
+    return _ncc_map(win, tz, tn, 1)
 
 
 def ncc(win, t) -> np.ndarray:
@@ -110,69 +189,33 @@ def ncc(win, t) -> np.ndarray:
 
 
 @njit(cache=True)
-def _ncc_pages(img, ri, ci, m, flat, offs, sizes, pages, crop, a0, a1, b0, b1, out):
-    # one match's correlations for many pages in one call (the per-call overhead of ~60 small maps per match)
+def _ncc_pages(img, ri, ci, m, flat, offs, sizes, zflat, tns, pages, crop, a0, a1, b0, b1, out):
+    # one match's correlations for many pages in one call (the per-call overhead of ~60 small maps per match); whole
+    # templates from their cached zero-mean copies, cropped ones made zero-mean here
     for q in range(len(pages)):
         k = pages[q]
         T = sizes[k]
-        t = flat[offs[k]:offs[k] + T * T].reshape((T, T))
-        Tc = crop if crop > 0 else T
-        o = (T - Tc) // 2
+        Tc = crop if crop > 0 and crop < T else T
         h = Tc // 2
         win = img[ri - h - m + a0: ri + h - m + a1, ci - h - m + b0: ci + h - m + b1]
         out[q, :, :] = -1.0
-        out[q, a0:a1, b0:b1] = _ncc_direct(win, t[o:o + Tc, o:o + Tc])
-
-
-@njit(cache=True, fastmath=True)
-def _dot(a, b):
-    # the dot product of two float32 rows (a function of its own: inlined, its loop is vectorised, which the same
-    # loop written inside the shift loops is not when the shift has a stride)
-    s = np.float32(0.0)
-    for k in range(a.shape[0]):
-        s += a[k] * b[k]
-    return s
-
-
-@njit(cache=True, fastmath=True)
-def _ncc_strided(win, t, step):
-    # _ncc_direct at every ``step``-th shift in each axis only (a coarse pass over the shifts): the same sums,
-    # the integral images over the whole window
-    win = np.ascontiguousarray(win)
-    T0, T1 = t.shape
-    H, W = win.shape
-    ny, nx = (H - T0) // step + 1, (W - T1) // step + 1
-    N = T0 * T1
-    tz, tn, S1, S2 = _setup(win, t)
-    out = np.empty((ny, nx), np.float32)
-    acc = np.empty(nx, np.float32)
-    for ii in range(ny):
-        i = ii * step
-        acc[:] = 0.0
-        for a in range(T0):
-            row = win[i + a]
-            trow = tz[a]
-            for jj in range(nx):
-                j = jj * step
-                acc[jj] += _dot(row[j:j + T1], trow)
-        for jj in range(nx):
-            j = jj * step
-            s1 = S1[i + T0, j + T1] - S1[i, j + T1] - S1[i + T0, j] + S1[i, j]
-            s2 = S2[i + T0, j + T1] - S2[i, j + T1] - S2[i + T0, j] + S2[i, j]
-            d = np.sqrt(max(s2 - s1 * s1 / N, 0.0) * tn)
-            out[ii, jj] = acc[jj] / d if d > 0 else -1.0
-    return out
+        if Tc == T:
+            out[q, a0:a1, b0:b1] = _ncc_map(win, zflat[offs[k]:offs[k] + T * T].reshape((T, T)), tns[k], 1)
+        else:
+            o = (T - Tc) // 2
+            t = flat[offs[k]:offs[k] + T * T].reshape((T, T))
+            tz, tn = _zero_mean(t[o:o + Tc, o:o + Tc])
+            out[q, a0:a1, b0:b1] = _ncc_map(win, tz, tn, 1)
 
 
 @njit(cache=True)
-def _ncc_pages_strided(img, ri, ci, m, flat, offs, sizes, pages, step, out):
+def _ncc_pages_strided(img, ri, ci, m, offs, sizes, zflat, tns, pages, step, out):
     for q in range(len(pages)):
         k = pages[q]
         T = sizes[k]
-        t = flat[offs[k]:offs[k] + T * T].reshape((T, T))
         h = T // 2
         win = img[ri - h - m: ri + h + m + 1, ci - h - m: ci + h + m + 1]
-        out[q, :, :] = _ncc_strided(win, t, step)
+        out[q, :, :] = _ncc_map(win, zflat[offs[k]:offs[k] + T * T].reshape((T, T)), tns[k], step)
 
 
 def ncc_pages_strided(img, ri, ci, m, tmpl: "Templates", pages, step: int) -> np.ndarray:
@@ -186,9 +229,10 @@ def ncc_pages_strided(img, ri, ci, m, tmpl: "Templates", pages, step: int) -> np
     """
     nc = (2 * m) // step + 1
     flat, offs, sizes = tmpl.packed
+    zflat, tns = tmpl.zero_mean
     pages = np.asarray(pages, np.int64)
     out = np.empty((len(pages), nc, nc), np.float32)
-    _ncc_pages_strided(img, int(ri), int(ci), int(m), flat, offs, sizes, pages, int(step), out)
+    _ncc_pages_strided(img, int(ri), int(ci), int(m), offs, sizes, zflat, tns, pages, int(step), out)
     return out
 
 
@@ -196,6 +240,7 @@ class Templates(list):
     """A list of square float32 templates that also holds them packed in one buffer (for :func:`ncc_pages`)."""
 
     _packed = None
+    _zero_mean = None
 
     @property
     def packed(self):
@@ -205,6 +250,20 @@ class Templates(list):
             flat = np.concatenate([np.ascontiguousarray(t, np.float32).ravel() for t in self])
             self._packed = (flat, offs, sizes)
         return self._packed
+
+    @property
+    def zero_mean(self):
+        """(zflat, tn): every template minus its mean, packed as :attr:`packed`, and its sum of squares (the
+        same for every window it is correlated with)."""
+        if self._zero_mean is None:
+            flat, offs, sizes = self.packed
+            zflat = np.empty_like(flat)
+            tns = np.empty(len(sizes))
+            for k, (o, T) in enumerate(zip(offs, sizes)):
+                tz, tns[k] = _zero_mean(flat[o:o + T * T].reshape(T, T))
+                zflat[o:o + T * T] = tz.ravel()
+            self._zero_mean = (zflat, tns)
+        return self._zero_mean
 
 
 def ncc_pages(img, ri, ci, m, tmpl: Templates, pages, crop=0, rows=None, cols=None) -> np.ndarray:
@@ -221,8 +280,9 @@ def ncc_pages(img, ri, ci, m, tmpl: Templates, pages, crop=0, rows=None, cols=No
     a0, a1 = rows if rows is not None else (0, n)
     b0, b1 = cols if cols is not None else (0, n)
     flat, offs, sizes = tmpl.packed
+    zflat, tns = tmpl.zero_mean
     pages = np.asarray(pages, np.int64)
     out = np.empty((len(pages), n, n), np.float32)
-    _ncc_pages(img, int(ri), int(ci), int(m), flat, offs, sizes, pages, int(crop), int(a0), int(a1), int(b0),
-               int(b1), out)
+    _ncc_pages(img, int(ri), int(ci), int(m), flat, offs, sizes, zflat, tns, pages, int(crop), int(a0), int(a1),
+               int(b0), int(b1), out)
     return out
