@@ -156,14 +156,20 @@ def _timed(cmd, env, cwd, log: Path, cpu: dict | None = None) -> float:
     return wall
 
 
+OMP_WAIT = None  # --omp-wait: OMP_WAIT_POLICY for both codes (None: the OpenMP library's default)
+
+
 def thread_env(env: dict, threads: int) -> dict:
     e = dict(env)
     e["NUMBA_NUM_THREADS"] = str(threads)
     e["OMP_NUM_THREADS"] = str(threads)
     e["PTRACK_THREADS"] = str(threads)  # ours: the DEM pair kernel's threads (sim.dem.dem_threads)
-    # on a shared, oversubscribed machine spinning OpenMP barriers stall when a thread loses its core
-    # (LAMMPS -sf omp at N = 1000, T = 2 ran 100x slower than T = 1 with the default policy)
-    e.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    # The library default (spin a while at a barrier, then sleep) is what a user gets and suits an idle
+    # machine; PASSIVE (sleep at once) costs a wake-up per parallel region (ours 0.85x from a second thread
+    # at N = 1.5e4, LAMMPS 0.79x, 3 Dec), but on an oversubscribed machine spinning barriers stall when a
+    # thread loses its core (LAMMPS -sf omp at N = 1000, T = 2 once ran 100x slower than T = 1).
+    if OMP_WAIT:
+        e["OMP_WAIT_POLICY"] = OMP_WAIT
     return e
 
 
@@ -349,6 +355,56 @@ def study_cold_warm(work: Path) -> dict:
 
 
 # --------------------------------------------------------------------------- main
+def thread_ceiling(n: int = 15000) -> dict:
+    """What a second thread gives the simplest loops on this machine (wall-time ratio, best of 3): a
+    streaming pass over N particles' positions, velocities and forces (the shape of a kick-drift pass) and
+    eight independent multiply-add chains (arithmetic throughput).  Two separate idle cores give ~2x to
+    both; two hardware threads of one core (SMT), or a busy host, give much less: the ceiling for the DEM
+    step, whose passes are of these two kinds."""
+    import numba
+    from numba import njit, prange
+
+    @njit(parallel=True)
+    def stream(pos, vel, force, ref, kick, dt):
+        m = 0.0
+        for i in prange(pos.shape[0]):
+            for c in range(3):
+                v = vel[i, c] + kick[i] * force[i, c]
+                vel[i, c] = v
+                pos[i, c] += dt * v
+                d = pos[i, c] - ref[i, c]
+                m = max(m, d * d)
+                force[i, c] = 1e-3
+        return m
+
+    @njit(parallel=True)
+    def fma(n, reps):
+        out = np.zeros(n)
+        for i in prange(n):
+            a = np.arange(8) * 1.0 + i
+            for _ in range(reps):
+                for c in range(8):
+                    a[c] = a[c] * 0.999999 + 1e-7
+            out[i] = a.sum()
+        return out
+
+    rng = np.random.default_rng(0)
+    arrs = [rng.random((n, 3)) for _ in range(4)] + [rng.random(n)]
+    cases = {"stream": lambda: [stream(*arrs, 1e-9) for _ in range(200)], "fma": lambda: fma(64, 300_000)}
+    out = {}
+    for name, f in cases.items():
+        f()
+        best = {}
+        for t in (1, 2, 1, 2, 1, 2):
+            numba.set_num_threads(t)
+            t0 = time.perf_counter()
+            f()
+            best[t] = min(best.get(t, np.inf), time.perf_counter() - t0)
+        out[name] = best[1] / best[2]
+    numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[1000, 15000, 100000])
@@ -357,7 +413,11 @@ def main(argv=None):
     ap.add_argument("--workdir", default=None, help="folder for the runs (default: a temporary one, kept)")
     ap.add_argument("--no-study", action="store_true", help="skip the cold/warm deposition example 1 timing")
     ap.add_argument("--no-restitution", action="store_true", help="skip the head-on collision check")
+    ap.add_argument("--omp-wait", choices=("active", "passive"), default=None,
+                    help="OMP_WAIT_POLICY of both codes (default: the OpenMP library's own; passive on a busy machine)")
     args = ap.parse_args(argv)
+    global OMP_WAIT
+    OMP_WAIT = args.omp_wait.upper() if args.omp_wait else None
     work = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="bench_lammps_"))
     work.mkdir(parents=True, exist_ok=True)
     print(f"work folder: {work}  (machine: {os.cpu_count()} cores, shared: timings are noisy)", flush=True)
@@ -412,6 +472,10 @@ def main(argv=None):
         if 1 in by and 2 in by:
             print(f"N={n}: speed-up from a second thread: ours {by[1]['ours_s'] / by[2]['ours_s']:.2f}x, "
                   f"LAMMPS {by[1]['lammps_s'] / by[2]['lammps_s']:.2f}x")
+    if 2 in args.threads:
+        c = thread_ceiling()
+        print(f"this machine's ceiling for a second thread (bench_lammps.thread_ceiling): streaming pass "
+              f"{c['stream']:.2f}x, multiply-add throughput {c['fma']:.2f}x (two idle cores: ~2x)")
     (work / "results.json").write_text(json.dumps(rows, indent=2))
     if not args.no_study:
         cw = study_cold_warm(work)
