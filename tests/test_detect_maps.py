@@ -177,3 +177,26 @@ def test_blur_ladder_kernels_reach_three_sigmas():
     assert abs(float(b[0].sum()) - 1.0) < 1e-5           # still normalised
     # the second rung blurs the first by sqrt(2^2 - 1) = 1.73 px: 3 + 6 px reach in all
     assert b[1][20, 29] > 0 and b[1][20, 30] == 0
+
+
+def test_best_over_scales_in_float32_is_the_float64_pass_bit_for_bit():
+    # float32 inverse-noise maps are multiplied in float32; float64 ones (the same values) in float64 and
+    # rounded to the float32 map: the same maps, both signs, with and without the other sign's map
+    rng = np.random.default_rng(21)
+    h, w, ns = 37, 53, 4
+    b1s = tuple((rng.normal(0, 1, (h, w)) * 10.0 ** rng.uniform(-2, 3)).astype(np.float32) for _ in range(ns))
+    b2s = tuple((b + rng.normal(0, 1, (h, w)) * 10.0 ** rng.uniform(-2, 3)).astype(np.float32) for b in b1s)
+    ivs = (10.0 ** rng.uniform(-3, 2, (ns, h, w))).astype(np.float32)
+    for sign in (1.0, -1.0):
+        for both in (False, True):
+            out = []
+            for iv in (ivs, ivs.astype(np.float64)):
+                best, neg = np.empty((h, w), np.float32), np.empty((h, w) if both else (1, 1), np.float32)
+                D._best_over_scales(b1s, b2s, iv, 0, sign, best, neg, both)
+                out.append((best, neg))
+            assert np.array_equal(out[0][0], out[1][0]) and (not both or np.array_equal(out[0][1], out[1][1]))
+            z = np.max([sign * (b1s[i] - b2s[i]).astype(np.float64) * ivs[i] for i in range(ns)], axis=0)
+            assert np.array_equal(out[0][0], z.astype(np.float32))
+            if both:
+                zn = np.max([-sign * (b1s[i] - b2s[i]).astype(np.float64) * ivs[i] for i in range(ns)], axis=0)
+                assert np.array_equal(out[0][1], zn.astype(np.float32))
