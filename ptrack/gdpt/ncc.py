@@ -106,21 +106,18 @@ def _dot4(w0, w1, w2, w3, t):
 
 
 @njit(cache=True, fastmath=True)
-def _ncc_map(win, tz, tn, step):
+def _ncc_map(wc, S, tz, tn, step):
     # the correlation map of zero-mean template tz (sum of squares tn) at every ``step``-th shift in each axis (1:
     # all). A shift's sum over the template is one dot product of the flattened window from the shift's corner with
     # the template laid out on the window's row length (zeros between its rows): long vectorised loops instead of
     # a short dot per template row, whose scalar tail (T1 mod 32 terms) took a third of the time at T1 = 51; four
     # shifts per pass share the template's loads. Templates spanning more than FLAT_MAX px (refine_full's at full
-    # resolution, whose flat layout leaves the cache): row by row
+    # resolution, whose flat layout leaves the cache): row by row. wc: the window, contiguous (with a slice's
+    # unknown strides the loops over a row are not vectorised); S: its _window_sums for tz's shape
     T0, T1 = tz.shape
-    H, W = win.shape
+    H, W = wc.shape
     ny, nx = (H - T0) // step + 1, (W - T1) // step + 1
     N = T0 * T1
-    # a contiguous copy of the window (a few thousand floats): with a slice's unknown strides the loops over a row
-    # are not vectorised
-    wc = np.ascontiguousarray(win)
-    S = _window_sums(wc, T0, T1)
     acc = np.zeros((ny, nx), np.float32)
     L = (T0 - 1) * W + T1
     if L <= FLAT_MAX:
@@ -159,7 +156,8 @@ def _ncc_map(win, tz, tn, step):
 @njit(cache=True)
 def _ncc_direct(win, t):
     tz, tn = _zero_mean(t)
-    return _ncc_map(win, tz, tn, 1)
+    wc = np.ascontiguousarray(win)
+    return _ncc_map(wc, _window_sums(wc, t.shape[0], t.shape[1]), tz, tn, 1)
 
 
 def ncc(win, t) -> np.ndarray:
@@ -191,31 +189,44 @@ def ncc(win, t) -> np.ndarray:
 @njit(cache=True)
 def _ncc_pages(img, ri, ci, m, flat, offs, sizes, zflat, tns, pages, crop, a0, a1, b0, b1, out):
     # one match's correlations for many pages in one call (the per-call overhead of ~60 small maps per match); whole
-    # templates from their cached zero-mean copies, cropped ones made zero-mean here
+    # templates from their cached zero-mean copies, cropped ones made zero-mean here. Pages of one size (runs of
+    # 3-7 among interpolated templates) share the window and its sums
+    Tw = -1
+    wc = np.empty((1, 1), np.float32)
+    S = np.empty((2, 1, 1))
     for q in range(len(pages)):
         k = pages[q]
         T = sizes[k]
         Tc = crop if crop > 0 and crop < T else T
-        h = Tc // 2
-        win = img[ri - h - m + a0: ri + h - m + a1, ci - h - m + b0: ci + h - m + b1]
+        if Tc != Tw:
+            h = Tc // 2
+            wc = np.ascontiguousarray(img[ri - h - m + a0: ri + h - m + a1, ci - h - m + b0: ci + h - m + b1])
+            S = _window_sums(wc, Tc, Tc)
+            Tw = Tc
         out[q, :, :] = -1.0
         if Tc == T:
-            out[q, a0:a1, b0:b1] = _ncc_map(win, zflat[offs[k]:offs[k] + T * T].reshape((T, T)), tns[k], 1)
+            out[q, a0:a1, b0:b1] = _ncc_map(wc, S, zflat[offs[k]:offs[k] + T * T].reshape((T, T)), tns[k], 1)
         else:
             o = (T - Tc) // 2
             t = flat[offs[k]:offs[k] + T * T].reshape((T, T))
             tz, tn = _zero_mean(t[o:o + Tc, o:o + Tc])
-            out[q, a0:a1, b0:b1] = _ncc_map(win, tz, tn, 1)
+            out[q, a0:a1, b0:b1] = _ncc_map(wc, S, tz, tn, 1)
 
 
 @njit(cache=True)
 def _ncc_pages_strided(img, ri, ci, m, offs, sizes, zflat, tns, pages, step, out):
+    Tw = -1
+    wc = np.empty((1, 1), np.float32)
+    S = np.empty((2, 1, 1))
     for q in range(len(pages)):
         k = pages[q]
         T = sizes[k]
-        h = T // 2
-        win = img[ri - h - m: ri + h + m + 1, ci - h - m: ci + h + m + 1]
-        out[q, :, :] = _ncc_map(win, zflat[offs[k]:offs[k] + T * T].reshape((T, T)), tns[k], step)
+        if T != Tw:
+            h = T // 2
+            wc = np.ascontiguousarray(img[ri - h - m: ri + h + m + 1, ci - h - m: ci + h + m + 1])
+            S = _window_sums(wc, T, T)
+            Tw = T
+        out[q, :, :] = _ncc_map(wc, S, zflat[offs[k]:offs[k] + T * T].reshape((T, T)), tns[k], step)
 
 
 def ncc_pages_strided(img, ri, ci, m, tmpl: "Templates", pages, step: int) -> np.ndarray:
