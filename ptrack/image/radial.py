@@ -323,58 +323,60 @@ def _profile_one(img, r, c, half, x0, y0, n2, gw, out):
                 ddyw = ddy * wt
                 # the normal equations' sums, each entry the same products in the same pixel order as a full
                 # matrix's lower triangle (the Cholesky reads no other; mirrored below for the LU fallback).
-                # Spline rows (indices < K, scattered by the knots) in A; the background rows, whose indices
-                # are fixed, and the centre's entries in scalars (a scattered update through memory costs
-                # several times a register add)
+                # Spline rows (indices < K, scattered by the knots) in A, their background and centre entries
+                # in adjacent columns; the background rows' other entries, whose indices are fixed, and the
+                # centre's in scalars (a scattered update through memory costs several times a register add)
+                w0 = l0 * wt
+                w1 = l1 * wt
+                w2 = l2 * wt
+                w3 = l3 * wt
                 for p in range(nz):
                     ip = idx[p]
-                    rhs[ip, 0] += val[p] * res
-                    vp = val[p] * wt
+                    v = val[p]
+                    rhs[ip, 0] += v * res
+                    vp = v * wt
                     for q in range(nz):
                         iq = idx[q]
                         if iq <= ip:
                             A[ip, iq] += vp * val[q]
+                    # the background rows' spline entries (K + a, ip), summed in the spline row's adjacent
+                    # columns K..K+3 beside its centre entries (mirrored to the lower triangle below)
+                    A[ip, K] += w0 * v
+                    A[ip, K + 1] += w1 * v
+                    A[ip, K + 2] += w2 * v
+                    A[ip, K + 3] += w3 * v
                     A[ip, IX] += vp * ddx
                     A[ip, IY] += vp * ddy
-                vp = l0 * wt
                 r0_ += l0 * res
-                for q in range(nz):
-                    A[K, idx[q]] += vp * val[q]
-                a00 += vp * l0
-                x0_ += vp * ddx
-                y0_ += vp * ddy
-                vp = l1 * wt
+                a00 += w0 * l0
+                x0_ += w0 * ddx
+                y0_ += w0 * ddy
                 r1_ += l1 * res
-                for q in range(nz):
-                    A[K + 1, idx[q]] += vp * val[q]
-                a10 += vp * l0
-                a11 += vp * l1
-                x1_ += vp * ddx
-                y1_ += vp * ddy
-                vp = l2 * wt
+                a10 += w1 * l0
+                a11 += w1 * l1
+                x1_ += w1 * ddx
+                y1_ += w1 * ddy
                 r2_ += l2 * res
-                for q in range(nz):
-                    A[K + 2, idx[q]] += vp * val[q]
-                a20 += vp * l0
-                a21 += vp * l1
-                a22 += vp * l2
-                x2_ += vp * ddx
-                y2_ += vp * ddy
-                vp = l3 * wt
+                a20 += w2 * l0
+                a21 += w2 * l1
+                a22 += w2 * l2
+                x2_ += w2 * ddx
+                y2_ += w2 * ddy
                 r3_ += l3 * res
-                for q in range(nz):
-                    A[K + 3, idx[q]] += vp * val[q]
-                a30 += vp * l0
-                a31 += vp * l1
-                a32 += vp * l2
-                a33 += vp * l3
-                x3_ += vp * ddx
-                y3_ += vp * ddy
+                a30 += w3 * l0
+                a31 += w3 * l1
+                a32 += w3 * l2
+                a33 += w3 * l3
+                x3_ += w3 * ddx
+                y3_ += w3 * ddy
                 rx_ += ddx * res
                 ry_ += ddy * res
                 axx += ddxw * ddx
                 axy += ddxw * ddy
                 ayy += ddyw * ddy
+        for q in range(K):
+            for a in range(4):
+                A[K + a, q] = A[q, K + a]
         rhs[K, 0] = r0_
         rhs[K + 1, 0] = r1_
         rhs[K + 2, 0] = r2_
