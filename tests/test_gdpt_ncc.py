@@ -21,6 +21,18 @@ def test_direct_matches_opencv(T, m):
     np.testing.assert_allclose(got, ref, atol=2e-6)
 
 
+def test_corners_are_ncc_of_each_page_at_its_own_corner():
+    """ncc_corners (refine_full's batch) = ncc of each page's template on the window at its corner, bit for bit."""
+    rng = np.random.default_rng(9)
+    tm = N.Templates(rng.random((T, T)).astype(np.float32) for T in (7, 12, 31, 45))
+    img = (100 * rng.random((90, 80))).astype(np.float32)
+    pages, tops, lefts = [3, 0, 2, 2, 1], [0, 40, 10, 11, 70], [30, 5, 47, 46, 0]
+    got = N.ncc_corners(img, tm, pages, tops, lefts, 3)
+    for q, (k, r, c) in enumerate(zip(pages, tops, lefts)):
+        T = tm[k].shape[0]
+        assert np.array_equal(got[q], N.ncc(img[r:r + T + 2, c:c + T + 2], tm[k]))
+
+
 def test_zero_mean_templates_are_cached_per_templates_object():
     rng = np.random.default_rng(8)
     tm = N.Templates(rng.random((T, T)).astype(np.float32) for T in (5, 8, 13))

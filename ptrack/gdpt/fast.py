@@ -93,14 +93,17 @@ def refine_full(img, calib, df, f: int, smooth: float = 1.5, small: int = 64):
     import cv2
 
     from ..calibration import _gauss3, _quadratic_peak, _subpixel_peaks, smoothed_templates
-    from .ncc import ncc
+    from .ncc import ncc, ncc_corners
 
     if len(df) == 0:
         return df
     H, W = img.shape
-    sm = cv2.GaussianBlur(np.ascontiguousarray(img, np.float32), (0, 0), smooth) if smooth else img
+    img32 = np.ascontiguousarray(img, np.float32)
+    sm = cv2.GaussianBlur(img32, (0, 0), smooth) if smooth else img32
     tm = smoothed_templates(calib, smooth)
     K = len(tm)
+    sizes = tm.packed[2]
+    cen = np.asarray(calib.centers, np.float64)
     n_sub = int(calib.info.get("n_sub", 1))
     out = df.copy()
     xs, ys, zs, cms, pages, mass = (out[c].to_numpy().copy() for c in ("x_px", "y_px", "z", "cm", "page", "mass"))
@@ -124,7 +127,6 @@ def refine_full(img, calib, df, f: int, smooth: float = 1.5, small: int = 64):
         if T < small:
             # a small image: its shape was blurred by the reduction, its reduced-resolution z may be pages off;
             # small templates are cheap: all of them near focus (one recorded step beyond)
-            sizes = calib.info.setdefault("_sizes", np.array([q.shape[0] for q in tm]))
             js = np.nonzero(sizes < small)[0]
             js = np.arange(max(0, js.min() - n_sub), min(K, js.max() + n_sub + 1))
         else:
@@ -133,15 +135,14 @@ def refine_full(img, calib, df, f: int, smooth: float = 1.5, small: int = 64):
         done = np.zeros(len(js), bool)
 
         def corr(qs):
-            for q in qs:
-                j = js[q]
-                tj = tm[j]
-                Tj = tj.shape[0]
-                tp, lf = int(round(y0 - calib.centers[j][0])) - 1, int(round(x0 - calib.centers[j][1])) - 1
-                if tp < 0 or lf < 0 or tp + Tj + 2 > H or lf + Tj + 2 > W:
-                    return False
-                maps[q] = ncc(sm[tp:tp + Tj + 2, lf:lf + Tj + 2], tj)
-                done[q] = True
+            # each template at +-1 px of the integer-placed centre, all in one call (False: a window leaves the frame)
+            j = js[qs]
+            tp = np.round(y0 - cen[j, 0]).astype(np.int64) - 1      # round half to even, as round()
+            lf = np.round(x0 - cen[j, 1]).astype(np.int64) - 1
+            if np.any((tp < 0) | (lf < 0) | (tp + sizes[j] + 2 > H) | (lf + sizes[j] + 2 > W)):
+                return False
+            maps[qs] = ncc_corners(sm, tm, j, tp, lf, 3)
+            done[qs] = True
             return True
 
         if n_sub > 1 and len(js) > 4 * n_sub:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["ncc", "ncc_pages", "ncc_pages_strided", "DIRECT_MAX"]
+__all__ = ["ncc", "ncc_pages", "ncc_pages_strided", "ncc_corners", "DIRECT_MAX"]
 
 DIRECT_MAX = 121     # shifts (rows x cols of the map) up to which the direct sum is used (11 x 11)
 FLAT_MAX = 8192      # template span (px, see _ncc_map) up to which a shift's sum is one flat dot product
@@ -244,6 +244,34 @@ def ncc_pages_strided(img, ri, ci, m, tmpl: "Templates", pages, step: int) -> np
     pages = np.asarray(pages, np.int64)
     out = np.empty((len(pages), nc, nc), np.float32)
     _ncc_pages_strided(img, int(ri), int(ci), int(m), offs, sizes, zflat, tns, pages, int(step), out)
+    return out
+
+
+@njit(cache=True)
+def _ncc_corners(img, offs, sizes, zflat, tns, pages, tops, lefts, n, out):
+    for q in range(len(pages)):
+        k = pages[q]
+        T = sizes[k]
+        wc = np.ascontiguousarray(img[tops[q]:tops[q] + T + n - 1, lefts[q]:lefts[q] + T + n - 1])
+        out[q, :, :] = _ncc_map(wc, _window_sums(wc, T, T), zflat[offs[k]:offs[k] + T * T].reshape((T, T)), tns[k], 1)
+
+
+def ncc_corners(img, tmpl: "Templates", pages, tops, lefts, n: int) -> np.ndarray:
+    """Maps of :func:`ncc` of each page's template over the window of ``img`` whose corner is (tops[q], lefts[q])
+    (px, integer) and side the template's + n - 1: its correlation at the n x n shifts from that corner, each page
+    placed on its own corner, in one call (``ptrack.gdpt.fast.refine_full``: ~40 small maps per image). The
+    windows must lie inside ``img`` (a contiguous float32 array).
+
+    Returns
+    -------
+    (len(pages), n, n) float32 array, equal to ``ncc(img[top:top + T + n - 1, left:left + T + n - 1], tmpl[k])``
+    """
+    flat, offs, sizes = tmpl.packed
+    zflat, tns = tmpl.zero_mean
+    pages = np.asarray(pages, np.int64)
+    out = np.empty((len(pages), n, n), np.float32)
+    _ncc_corners(img, offs, sizes, zflat, tns, pages, np.asarray(tops, np.int64), np.asarray(lefts, np.int64),
+                 int(n), out)
     return out
 
 
