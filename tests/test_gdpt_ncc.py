@@ -45,6 +45,23 @@ def test_zero_mean_templates_are_cached_per_templates_object():
         assert abs(tns[k] - float(((t - t.astype(np.float64).mean()) ** 2).sum())) < 1e-5 * tns[k]
 
 
+def test_layout_is_the_zero_mean_template_on_the_window_row_length():
+    rng = np.random.default_rng(10)
+    tm = N.Templates(rng.random((T, T)).astype(np.float32) for T in (5, 9, 95))
+    zflat, _ = tm.zero_mean
+    flat, offs, sizes = tm.packed
+    lflat, loffs = tm.layout(4)
+    for k, T in enumerate(sizes):
+        lay = lflat[loffs[k]:loffs[k + 1]]
+        if (T - 1) * (T + 4) + T > N.FLAT_MAX:
+            assert lay.size == 0            # correlated row by row
+            continue
+        want = np.zeros((T, T + 4), np.float32)
+        want[:, :T] = zflat[offs[k]:offs[k] + T * T].reshape(T, T)
+        assert np.array_equal(lay, want.ravel()[:(T - 1) * (T + 4) + T])
+    assert tm.layout(4)[0] is lflat
+
+
 def test_constant_window_is_minus_one():
     t = np.random.default_rng(1).random((9, 9)).astype(np.float32)
     assert np.all(N.ncc(np.zeros((13, 13), np.float32), t) == -1.0)

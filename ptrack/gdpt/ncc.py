@@ -106,14 +106,15 @@ def _dot4(w0, w1, w2, w3, t):
 
 
 @njit(cache=True, fastmath=True)
-def _ncc_map(wc, S, tz, tn, step):
+def _ncc_map(wc, S, tz, tn, step, tp):
     # the correlation map of zero-mean template tz (sum of squares tn) at every ``step``-th shift in each axis (1:
     # all). A shift's sum over the template is one dot product of the flattened window from the shift's corner with
     # the template laid out on the window's row length (zeros between its rows): long vectorised loops instead of
     # a short dot per template row, whose scalar tail (T1 mod 32 terms) took a third of the time at T1 = 51; four
     # shifts per pass share the template's loads. Templates spanning more than FLAT_MAX px (refine_full's at full
     # resolution, whose flat layout leaves the cache): row by row. wc: the window, contiguous (with a slice's
-    # unknown strides the loops over a row are not vectorised); S: its _window_sums for tz's shape
+    # unknown strides the loops over a row are not vectorised); S: its _window_sums for tz's shape; tp: tz laid out
+    # on the window's row length (Templates.layout) or any other length (made here)
     T0, T1 = tz.shape
     H, W = wc.shape
     ny, nx = (H - T0) // step + 1, (W - T1) // step + 1
@@ -122,9 +123,10 @@ def _ncc_map(wc, S, tz, tn, step):
     L = (T0 - 1) * W + T1
     if L <= FLAT_MAX:
         wf = wc.ravel()
-        tp = np.zeros(L, np.float32)
-        for a in range(T0):
-            tp[a * W:a * W + T1] = tz[a]
+        if tp.shape[0] != L:
+            tp = np.zeros(L, np.float32)
+            for a in range(T0):
+                tp[a * W:a * W + T1] = tz[a]
         # the shifts in row-major order, four at a time (the last group repeats the last shift: computed, not stored)
         nsh = ny * nx
         o = np.empty(4, np.int64)
@@ -157,7 +159,7 @@ def _ncc_map(wc, S, tz, tn, step):
 def _ncc_direct(win, t):
     tz, tn = _zero_mean(t)
     wc = np.ascontiguousarray(win)
-    return _ncc_map(wc, _window_sums(wc, t.shape[0], t.shape[1]), tz, tn, 1)
+    return _ncc_map(wc, _window_sums(wc, t.shape[0], t.shape[1]), tz, tn, 1, np.empty(0, np.float32))
 
 
 def ncc(win, t) -> np.ndarray:
@@ -187,7 +189,7 @@ def ncc(win, t) -> np.ndarray:
 
 
 @njit(cache=True)
-def _ncc_pages(img, ri, ci, m, flat, offs, sizes, zflat, tns, pages, crop, a0, a1, b0, b1, out):
+def _ncc_pages(img, ri, ci, m, flat, offs, sizes, zflat, tns, lflat, loffs, pages, crop, a0, a1, b0, b1, out):
     # one match's correlations for many pages in one call (the per-call overhead of ~60 small maps per match); whole
     # templates from their cached zero-mean copies, cropped ones made zero-mean here. Pages of one size (runs of
     # 3-7 among interpolated templates) share the window and its sums
@@ -205,16 +207,17 @@ def _ncc_pages(img, ri, ci, m, flat, offs, sizes, zflat, tns, pages, crop, a0, a
             Tw = Tc
         out[q, :, :] = -1.0
         if Tc == T:
-            out[q, a0:a1, b0:b1] = _ncc_map(wc, S, zflat[offs[k]:offs[k] + T * T].reshape((T, T)), tns[k], 1)
+            out[q, a0:a1, b0:b1] = _ncc_map(wc, S, zflat[offs[k]:offs[k] + T * T].reshape((T, T)), tns[k], 1,
+                                            lflat[loffs[k]:loffs[k + 1]])
         else:
             o = (T - Tc) // 2
             t = flat[offs[k]:offs[k] + T * T].reshape((T, T))
             tz, tn = _zero_mean(t[o:o + Tc, o:o + Tc])
-            out[q, a0:a1, b0:b1] = _ncc_map(wc, S, tz, tn, 1)
+            out[q, a0:a1, b0:b1] = _ncc_map(wc, S, tz, tn, 1, np.empty(0, np.float32))
 
 
 @njit(cache=True)
-def _ncc_pages_strided(img, ri, ci, m, offs, sizes, zflat, tns, pages, step, out):
+def _ncc_pages_strided(img, ri, ci, m, offs, sizes, zflat, tns, lflat, loffs, pages, step, out):
     Tw = -1
     wc = np.empty((1, 1), np.float32)
     S = np.empty((2, 1, 1))
@@ -226,7 +229,8 @@ def _ncc_pages_strided(img, ri, ci, m, offs, sizes, zflat, tns, pages, step, out
             wc = np.ascontiguousarray(img[ri - h - m: ri + h + m + 1, ci - h - m: ci + h + m + 1])
             S = _window_sums(wc, T, T)
             Tw = T
-        out[q, :, :] = _ncc_map(wc, S, zflat[offs[k]:offs[k] + T * T].reshape((T, T)), tns[k], step)
+        out[q, :, :] = _ncc_map(wc, S, zflat[offs[k]:offs[k] + T * T].reshape((T, T)), tns[k], step,
+                                lflat[loffs[k]:loffs[k + 1]])
 
 
 def ncc_pages_strided(img, ri, ci, m, tmpl: "Templates", pages, step: int) -> np.ndarray:
@@ -241,19 +245,21 @@ def ncc_pages_strided(img, ri, ci, m, tmpl: "Templates", pages, step: int) -> np
     nc = (2 * m) // step + 1
     flat, offs, sizes = tmpl.packed
     zflat, tns = tmpl.zero_mean
+    lflat, loffs = tmpl.layout(2 * int(m))
     pages = np.asarray(pages, np.int64)
     out = np.empty((len(pages), nc, nc), np.float32)
-    _ncc_pages_strided(img, int(ri), int(ci), int(m), offs, sizes, zflat, tns, pages, int(step), out)
+    _ncc_pages_strided(img, int(ri), int(ci), int(m), offs, sizes, zflat, tns, lflat, loffs, pages, int(step), out)
     return out
 
 
 @njit(cache=True)
-def _ncc_corners(img, offs, sizes, zflat, tns, pages, tops, lefts, n, out):
+def _ncc_corners(img, offs, sizes, zflat, tns, lflat, loffs, pages, tops, lefts, n, out):
     for q in range(len(pages)):
         k = pages[q]
         T = sizes[k]
         wc = np.ascontiguousarray(img[tops[q]:tops[q] + T + n - 1, lefts[q]:lefts[q] + T + n - 1])
-        out[q, :, :] = _ncc_map(wc, _window_sums(wc, T, T), zflat[offs[k]:offs[k] + T * T].reshape((T, T)), tns[k], 1)
+        out[q, :, :] = _ncc_map(wc, _window_sums(wc, T, T), zflat[offs[k]:offs[k] + T * T].reshape((T, T)), tns[k],
+                                1, lflat[loffs[k]:loffs[k + 1]])
 
 
 def ncc_corners(img, tmpl: "Templates", pages, tops, lefts, n: int) -> np.ndarray:
@@ -268,10 +274,11 @@ def ncc_corners(img, tmpl: "Templates", pages, tops, lefts, n: int) -> np.ndarra
     """
     flat, offs, sizes = tmpl.packed
     zflat, tns = tmpl.zero_mean
+    lflat, loffs = tmpl.layout(int(n) - 1)
     pages = np.asarray(pages, np.int64)
     out = np.empty((len(pages), n, n), np.float32)
-    _ncc_corners(img, offs, sizes, zflat, tns, pages, np.asarray(tops, np.int64), np.asarray(lefts, np.int64),
-                 int(n), out)
+    _ncc_corners(img, offs, sizes, zflat, tns, lflat, loffs, pages, np.asarray(tops, np.int64),
+                 np.asarray(lefts, np.int64), int(n), out)
     return out
 
 
@@ -280,6 +287,7 @@ class Templates(list):
 
     _packed = None
     _zero_mean = None
+    _layouts = None
 
     @property
     def packed(self):
@@ -304,6 +312,30 @@ class Templates(list):
             self._zero_mean = (zflat, tns)
         return self._zero_mean
 
+    def layout(self, p: int):
+        """(lflat, loffs): every zero-mean template laid out on a row length of T + p px (p zeros after each row
+        but the last), as _ncc_map dots it with a window T + p px wide; page k's is lflat[loffs[k]:loffs[k + 1]]
+        (empty where it would span more than FLAT_MAX px: that page is correlated row by row). Cached per p: the
+        same for every match (making it per map cost a sixth of the correlation time)."""
+        if self._layouts is None:
+            self._layouts = {}
+        p = int(p)
+        if p not in self._layouts:
+            zflat, _ = self.zero_mean
+            flat, offs, sizes = self.packed
+            parts, loffs = [], np.zeros(len(sizes) + 1, np.int64)
+            for k, (o, T) in enumerate(zip(offs, sizes)):
+                L = (T - 1) * (T + p) + T
+                if L <= FLAT_MAX:
+                    lay = np.zeros((T, T + p), np.float32)
+                    lay[:, :T] = zflat[o:o + T * T].reshape(T, T)
+                    parts.append(lay.ravel()[:L])
+                    loffs[k + 1] = loffs[k] + L
+                else:
+                    loffs[k + 1] = loffs[k]
+            self._layouts[p] = (np.concatenate(parts) if parts else np.zeros(0, np.float32), loffs)
+        return self._layouts[p]
+
 
 def ncc_pages(img, ri, ci, m, tmpl: Templates, pages, crop=0, rows=None, cols=None) -> np.ndarray:
     """Maps of :func:`ncc` of each page's template (cropped about its centre to ``crop`` px if > 0) over the
@@ -320,8 +352,9 @@ def ncc_pages(img, ri, ci, m, tmpl: Templates, pages, crop=0, rows=None, cols=No
     b0, b1 = cols if cols is not None else (0, n)
     flat, offs, sizes = tmpl.packed
     zflat, tns = tmpl.zero_mean
+    lflat, loffs = tmpl.layout(int(b1) - int(b0) - 1)     # the window is T - 1 + (b1 - b0) px wide
     pages = np.asarray(pages, np.int64)
     out = np.empty((len(pages), n, n), np.float32)
-    _ncc_pages(img, int(ri), int(ci), int(m), flat, offs, sizes, zflat, tns, pages, int(crop), int(a0), int(a1),
-               int(b0), int(b1), out)
+    _ncc_pages(img, int(ri), int(ci), int(m), flat, offs, sizes, zflat, tns, lflat, loffs, pages, int(crop), int(a0),
+               int(a1), int(b0), int(b1), out)
     return out
