@@ -448,7 +448,7 @@ def _gauss3(y0, y1, y2):
         l0, l1, l2 = math.log(y0), math.log(y1), math.log(y2)
         den = l0 - 2 * l1 + l2
         if den < 0:
-            return float(np.clip(0.5 * (l0 - l2) / den, -1.0, 1.0))
+            return min(max(0.5 * (l0 - l2) / den, -1.0), 1.0)     # a Python float: np.clip costs ~5 us per call
     return _parabola_vertex(-1.0, 0.0, 1.0, y0, y1, y2)[0]
 
 
@@ -949,13 +949,17 @@ class _Residual:
         T = t.shape[0]
         sl = (slice(hit["top"], hit["top"] + T), slice(hit["left"], hit["left"] + T))
         win = self.img[sl]
-        ins = self.inside[sl]
-        tt = np.where(ins, t, 0.0)
+        Hp, Wp = self.img.shape
+        p = self.pad
+        if hit["top"] >= p and hit["left"] >= p and hit["top"] + T <= Hp - p and hit["left"] + T <= Wp - p:
+            tt = t              # wholly inside the frame (most hits): no masked copy
+        else:
+            tt = np.where(self.inside[sl], t, 0.0)
         den = float((tt * tt).sum())
         a = max(float((tt * win).sum()) / den, 0.0) if den > 0 else 0.0
         hit["snr"] = a * math.sqrt(den) / self.noise
         hit["amp"] = a          # brightness relative to the calibration particle (whole image, also outside the frame)
-        hit["mass"] = a * float(np.clip(t, 0, None).sum())   # whole image, also the part outside the frame
+        hit["mass"] = a * float(np.maximum(t, 0.0).sum())   # whole image, also the part outside the frame
         if cap is not None and a > cap:
             a = cap
         return sl, (a * tt).astype(np.float32)
