@@ -1093,6 +1093,11 @@ def _touches(hit, tmpl, slices) -> bool:
     return False
 
 
+# maps of up to this many shifts in _best_in_window by the direct sum (with its large templates, 2x faster than
+# OpenCV's up to 15 x 15 shifts, about even to 20 x 20, slower beyond)
+_WINDOW_DIRECT_MAX = 225
+
+
 def _best_in_window(resimg, pad, tmpl, calib: Calibration, r0, r1, c0, c1, n_templates: int,
                     n_peaks: int = 0, sep: float = 4.0):
     """(row, col, correlation) of the best candidate centre inside frame rows r0..r1, cols c0..c1 of the residual,
@@ -1120,8 +1125,10 @@ def _best_in_window(resimg, pad, tmpl, calib: Calibration, r0, r1, c0, c1, n_tem
         tc0, tc1 = max(c0 + pad - ox, 0), min(c1 + pad - ox, Wp - T)
         if tr1 < tr0 or tc1 < tc0:
             continue
-        R = cv2.matchTemplate(resimg[tr0:tr1 + T, tc0:tc1 + T], t, cv2.TM_CCOEFF_NORMED)
-        R = np.nan_to_num(R, nan=-1.0)
+        if (tr1 - tr0 + 1) * (tc1 - tc0 + 1) <= _WINDOW_DIRECT_MAX:
+            R = ncc(resimg[tr0:tr1 + T, tc0:tc1 + T], t, _WINDOW_DIRECT_MAX)     # never NaN
+        else:
+            R = np.nan_to_num(cv2.matchTemplate(resimg[tr0:tr1 + T, tc0:tc1 + T], t, cv2.TM_CCOEFF_NORMED), nan=-1.0)
         if cmap is not None:
             a, b = tr0 + oy - pad - r0, tc0 + ox - pad - c0          # R[0, 0] is the centre (a, b) of cmap
             sub = cmap[a:a + R.shape[0], b:b + R.shape[1]]

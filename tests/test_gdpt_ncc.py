@@ -122,3 +122,19 @@ def test_parabola_vertex_of_the_least_squares_fit():
         a, b, _ = np.polyfit(z[lo:hi] - z[k], c[lo:hi], 2)
         want = z[k] + np.clip(-b / (2 * a), z[lo] - z[k], z[hi - 1] - z[k]) if a < 0 else z[k]
         assert abs(_quadratic_peak(z, c, k, n_points=9) - want) < 1e-15
+
+
+def test_direct_max_raises_the_direct_sum_limit():
+    """ncc(..., direct_max): a 15 x 15 map (past DIRECT_MAX, as _best_in_window's) by the direct sum, which agrees
+    with OpenCV to float32 rounding (by default such a map is OpenCV's own)."""
+    rng = np.random.default_rng(12)
+    T = 41
+    yy, xx = np.mgrid[:T, :T] - T // 2
+    t = (np.exp(-(xx ** 2 + yy ** 2) / (0.1 * T * T)) + 0.05 * rng.random((T, T))).astype(np.float32)
+    win = (50 + 100 * rng.random((T + 14, T + 14))).astype(np.float32)
+    ref = cv2.matchTemplate(win, t, cv2.TM_CCOEFF_NORMED)
+    assert 15 * 15 > N.DIRECT_MAX
+    np.testing.assert_array_equal(N.ncc(win, t), ref)
+    got = N.ncc(win, t, direct_max=225)
+    assert np.array_equal(got, N._ncc_direct(win, t))
+    np.testing.assert_allclose(got, ref, atol=2e-6)

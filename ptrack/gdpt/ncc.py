@@ -162,7 +162,7 @@ def _ncc_direct(win, t):
     return _ncc_map(wc, _window_sums(wc, t.shape[0], t.shape[1]), tz, tn, 1, np.empty(0, np.float32))
 
 
-def ncc(win, t) -> np.ndarray:
+def ncc(win, t, direct_max: int = DIRECT_MAX) -> np.ndarray:
     """``cv2.matchTemplate(win, t, cv2.TM_CCOEFF_NORMED)`` (float32 map of shape win - t + 1).
 
     Parameters
@@ -171,6 +171,8 @@ def ncc(win, t) -> np.ndarray:
         Image window (any strides).
     t : (T0, T1) float32 array
         Template, T0 <= H, T1 <= W.
+    direct_max : int
+        Largest map (shifts) computed by the direct sum.
 
     Returns
     -------
@@ -181,7 +183,7 @@ def ncc(win, t) -> np.ndarray:
         ~2e-7), larger ones by OpenCV.
     """
     ny, nx = win.shape[0] - t.shape[0] + 1, win.shape[1] - t.shape[1] + 1
-    if ny * nx <= DIRECT_MAX and win.dtype == np.float32 and t.dtype == np.float32:
+    if ny * nx <= direct_max and win.dtype == np.float32 and t.dtype == np.float32:
         return _ncc_direct(win, t)
     import cv2
 
