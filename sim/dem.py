@@ -282,6 +282,16 @@ def _kick_drift(pos, vel, omega, force, torque, kick, ref_pos, dt, rotation, ski
     d2max = 0.0
     magnetic = extp[6] != 0.0 or extp[7] != 0.0 or extp[8] != 0.0
     kT = extp[5]
+    # the fluid and field parameters in locals: read from ``extp`` inside the loop they are loaded again for
+    # every particle (the compiler cannot rule out that the force stores alias them)
+    ufx = extp[0]
+    ufy = extp[1]
+    ufz = extp[2]
+    rho_f = extp[3]
+    mu = extp[4]
+    bx = extp[6]
+    by = extp[7]
+    bz = extp[8]
     vmax2 = guards[G_V_MAX] * guards[G_V_MAX]
     bottom = guards[G_HAS_BOTTOM] != 0.0
     st = OK
@@ -348,8 +358,8 @@ def _kick_drift(pos, vel, omega, force, torque, kick, ref_pos, dt, rotation, ski
                 w2 = q2
         if ext:
             fx, fy, fz = _external_one(fconst[i, 0], fconst[i, 1], fconst[i, 2], vx, vy, vz, radius[i], charge[i],
-                                       gamma[i], drag_mode, extp[0], extp[1], extp[2], extp[3], extp[4], extp[6],
-                                       extp[7], extp[8], magnetic, kT, seed, step, dt, i)
+                                       gamma[i], drag_mode, ufx, ufy, ufz, rho_f, mu, bx, by, bz, magnetic, kT, seed,
+                                       step, dt, i)
             force[i, 0] = 0.0 + fx
             force[i, 1] = 0.0 + fy
             force[i, 2] = 0.0 + fz
