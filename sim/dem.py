@@ -435,10 +435,19 @@ def _begin_forces(vel, radius, charge, gamma, fconst, drag_mode, extp, seed, ste
     kT = extp[5]
     for k in range(D_SIZE):
         diag[k] = 0.0
+    # extp in locals, as in _kick_drift (read inside the loop, it is loaded again for every particle)
+    ufx = extp[0]
+    ufy = extp[1]
+    ufz = extp[2]
+    rho_f = extp[3]
+    mu = extp[4]
+    bx = extp[6]
+    by = extp[7]
+    bz = extp[8]
     for i in range(vel.shape[0]):
         fx, fy, fz = _external_one(fconst[i, 0], fconst[i, 1], fconst[i, 2], vel[i, 0], vel[i, 1], vel[i, 2],
-                                   radius[i], charge[i], gamma[i], drag_mode, extp[0], extp[1], extp[2], extp[3], extp[4],
-                                   extp[6], extp[7], extp[8], magnetic, kT, seed, step, dt, i)
+                                   radius[i], charge[i], gamma[i], drag_mode, ufx, ufy, ufz, rho_f, mu, bx, by, bz,
+                                   magnetic, kT, seed, step, dt, i)
         force[i, 0] = 0.0 + fx
         force[i, 1] = 0.0 + fy
         force[i, 2] = 0.0 + fz
