@@ -50,9 +50,19 @@ def test_scale_index_from_the_full_maps_is_the_best_snr_scale():
 
 def test_tile_medians_and_mads_are_numpys():
     rng = np.random.default_rng(4)
-    for th, tw in ((16, 16), (5, 7), (3, 3), (1, 4)):
-        for kind in ("normal", "ties"):
-            x = rng.normal(0, 3, (3 * th, 4 * tw)) if kind == "normal" else rng.integers(0, 5, (3 * th, 4 * tw))
+    for th, tw in ((16, 16), (17, 16), (5, 7), (3, 3), (1, 4), (1, 1), (2, 1)):
+        for kind in ("normal", "ties", "heavy", "constant", "signed zeros"):
+            shape = (3 * th, 4 * tw)
+            if kind == "normal":
+                x = rng.normal(0, 3, shape)
+            elif kind == "ties":
+                x = rng.integers(0, 5, shape)
+            elif kind == "heavy":      # Cauchy tails over many binades, both signs
+                x = 1e3 * rng.standard_cauchy(shape)
+            elif kind == "constant":
+                x = np.full(shape, -2.5)
+            else:
+                x = np.where(rng.random(shape) < 0.5, -0.0, 0.0) + rng.integers(-1, 2, shape)
             sub = x.astype(np.float32)
             med, mad = D._tile_med_mad(sub, 3, 4, th, tw)
             for a in range(3):

@@ -48,7 +48,7 @@ import numpy as np
 
 from ..errors import UserError
 from .peaks import local_maxima
-from .preprocess import _select, fast_median
+from .preprocess import fast_median
 from .rings import RING_RADII, ring_evidence, ring_maps_candidates, ring_scale
 
 __all__ = ["DEFAULT_SCALES", "FALSE_ALARM_RATE", "MAP_REFRESH", "bandpass", "noise_maps", "false_alarm_threshold",
@@ -153,39 +153,122 @@ def _blur_ladder(work, sigmas, pool=None):
 
 
 @nb.njit(cache=True, inline="always")
-def _median_inplace(a, n):
-    # numpy's median of a[:n] (an even count: the mean of the two middle values), reordering a, no copy
-    h = n >> 1
-    upper = _select(a, h, n)
-    if n & 1:
-        return upper
-    lower = a[0]
-    for k in range(1, h):           # the lower middle value: the largest of the h values below the upper one
-        if a[k] > lower:
-            lower = a[k]
-    return (lower + upper) / 2
+def _sort_key(u):
+    # the bits of a float32 as a uint32 whose unsigned order is the floats' order (negative: all bits flipped;
+    # positive: the sign bit set)
+    return u ^ np.uint32(0xFFFFFFFF) if u & np.uint32(0x80000000) else u | np.uint32(0x80000000)
+
+
+@nb.njit(cache=True, inline="always")
+def _sort_unkey(u):
+    # the float32 bits of a _sort_key
+    return u ^ np.uint32(0x80000000) if u & np.uint32(0x80000000) else u ^ np.uint32(0xFFFFFFFF)
+
+
+@nb.njit(cache=True, inline="always")
+def _dev_pair(s, n, p, m, k):
+    # the k-th smallest (0-based) of the float32 deviations |s_i - m| of the sorted float32 array s[:n], and the
+    # next one (inf if none), as float64; s[:p] <= m <= s[p:]. The deviations m - s[p - 1 - i] (i < p) and
+    # s[p + i] - m are each non-decreasing in i (float32 subtraction rounds monotonically), so this is the k-th
+    # of two sorted sequences: a binary search for how many of the k + 1 smallest come from below m
+    a = p
+    b = n - p
+    lo = max(0, k + 1 - b)
+    hi = min(k + 1, a)
+    while lo < hi:
+        t = (lo + hi) >> 1
+        if m - s[p - 1 - t] >= s[p + k - t] - m:
+            hi = t
+        else:
+            lo = t + 1
+    t = lo
+    x = -np.inf
+    if t > 0:
+        x = np.float64(m - s[p - t])
+    if k - t >= 0:
+        x = max(x, np.float64(s[p + k - t] - m))
+    y = np.inf
+    if t < a:
+        y = np.float64(m - s[p - 1 - t])
+    if k + 1 - t < b:
+        y = min(y, np.float64(s[p + k + 1 - t] - m))
+    return x, y
 
 
 @nb.njit(cache=True)
 def _tile_med_mad(sub, nh, nw, th, tw):
-    # median and 1.4826 x median absolute deviation of each th x tw tile of sub (float32, the medians of
-    # an even count average the two middle values, as numpy's); one buffer selected in place (numpy's median
-    # in numba copies it and selects twice), no copy of the frame
+    """Median and 1.4826 x median absolute deviation of each ``th x tw`` tile of ``sub``.
+
+    Parameters
+    ----------
+    sub : 2D C-contiguous float32 array
+        Image (any unit), at least ``nh th x nw tw``.
+    nh, nw : int
+        Tiles per column and per row.
+    th, tw : int
+        Tile shape (px).
+
+    Returns
+    -------
+    med, mad : 2D float32 arrays, shape (nh, nw)
+        numpy's values (unit of ``sub``): the median of an even count is the float64 mean of the two middle
+        values, rounded to float32; the deviations are float32 ``|x - med|``. Each tile is sorted once (LSD
+        radix sort of the floats' order-preserving bits, 4 byte passes, a pass whose byte all share skipped);
+        the median is read off and the MAD found by a binary search over the deviations on either side of it
+        (two quickselects per tile cost twice as much).
+    """
     med = np.empty((nh, nw), np.float32)
     mad = np.empty((nh, nw), np.float32)
-    buf = np.empty(th * tw, np.float64)
+    n = th * tw
+    h = n >> 1
+    bits = sub.view(np.uint32)
+    ka = np.empty(n, np.uint32)
+    kb = np.empty(n, np.uint32)
+    cnt = np.empty((4, 256), np.int32)
     for a in range(nh):
         for b in range(nw):
-            n = 0
+            for d in range(4):
+                for q in range(256):
+                    cnt[d, q] = 0
+            k = 0
             for i in range(a * th, (a + 1) * th):
                 for j in range(b * tw, (b + 1) * tw):
-                    buf[n] = sub[i, j]
-                    n += 1
-            m = np.float32(_median_inplace(buf, n))
+                    u = _sort_key(bits[i, j])
+                    ka[k] = u
+                    cnt[0, u & np.uint32(255)] += 1
+                    cnt[1, (u >> np.uint32(8)) & np.uint32(255)] += 1
+                    cnt[2, (u >> np.uint32(16)) & np.uint32(255)] += 1
+                    cnt[3, u >> np.uint32(24)] += 1
+                    k += 1
+            src = ka
+            dst = kb
+            for d in range(4):
+                sh = np.uint32(8 * d)
+                if cnt[d, (src[0] >> sh) & np.uint32(255)] == n:
+                    continue
+                tot = 0
+                for q in range(256):
+                    c = cnt[d, q]
+                    cnt[d, q] = tot
+                    tot += c
+                for k in range(n):
+                    u = src[k]
+                    q = (u >> sh) & np.uint32(255)
+                    dst[cnt[d, q]] = u
+                    cnt[d, q] += 1
+                src, dst = dst, src
             for k in range(n):
-                buf[k] = abs(np.float32(buf[k]) - m)
+                src[k] = _sort_unkey(src[k])
+            s = src.view(np.float32)
+            if n & 1:
+                m = s[h]
+                dev = _dev_pair(s, n, h, m, h)[0]
+            else:
+                m = np.float32((np.float64(s[h - 1]) + np.float64(s[h])) / 2)
+                d0, d1 = _dev_pair(s, n, h, m, h - 1)
+                dev = (d0 + d1) / 2
             med[a, b] = m
-            mad[a, b] = np.float32(1.4826 * _median_inplace(buf, n))
+            mad[a, b] = np.float32(1.4826 * dev)
     return med, mad
 
 
