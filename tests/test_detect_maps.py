@@ -210,3 +210,25 @@ def test_best_over_scales_in_float32_is_the_float64_pass_bit_for_bit():
             if both:
                 zn = np.max([-sign * (b1s[i] - b2s[i]).astype(np.float64) * ivs[i] for i in range(ns)], axis=0)
                 assert np.array_equal(out[0][1], zn.astype(np.float32))
+
+
+def test_a_dropped_cache_gives_its_work_arrays_to_the_next_one():
+    # the blur ladder's outputs and the full-size inverse-noise maps of a dropped cache are reused by the next
+    # cache (no fresh memory to fault in on a movie's first frame), with the same detections; a cache of
+    # another frame shape takes new ones
+    f = _frame(5)
+    c1 = {}
+    d1 = D.detect(f, cache=c1)
+    mine = list(c1["blur_pool"]["owned"].arrays)
+    assert any(a is c1["ivs_full"] for a in mine) and len(mine) >= 1 + len(D.DEFAULT_SCALES)
+    del c1
+    c2 = {}
+    d2 = D.detect(f, cache=c2)
+    again = c2["blur_pool"]["owned"].arrays
+    assert sum(any(a is b for b in mine) for a in again) == len(mine)
+    for k in ("rows", "cols", "scale", "snr", "signal"):
+        assert np.array_equal(d1[k], d2[k])
+    d3 = D.detect(_frame(6, shape=(150, 170)), cache={})
+    ref = D.detect(_frame(6, shape=(150, 170)))
+    for k in ("rows", "cols", "scale", "snr", "signal"):
+        assert np.array_equal(d3[k], ref[k])

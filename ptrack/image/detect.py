@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import functools
 import math
+import threading
 
 import numba as nb
 import numpy as np
@@ -79,6 +80,13 @@ _IVS_BLOCK_BYTES = 1 << 20
 # the full-size inverse-noise maps of a cache are written into the previous map's array (kept in the blur pool):
 # a fresh 11 MB array per map measurement costs its page faults (~4 ms per 640 x 424 map against ~1 ms to fill)
 _POOL_IVS = True
+# the work arrays a cache owns (the blur ladder's outputs, the full-size inverse-noise maps) go to a free list when
+# the cache is dropped, and the next cache takes its arrays from there: a movie's first frame otherwise touches
+# ~14 MB of fresh memory at 640 x 424, whose page faults (~3 us per 4 kB page on a VM) cost ~10 ms. At most this
+# many bytes are kept on the free list (0: no recycling)
+_RECYCLE_BYTES = 64 << 20
+_FREE = []
+_FREE_LOCK = threading.RLock()
 # reach of the blur ladder's Gaussian kernels (sigmas; None: cv2's 4)
 _BLUR_TRUNC = 3.0
 # the median of the frame's noise map is taken over every this many pixels of each axis (1: all)
@@ -86,6 +94,42 @@ _RN_MEDIAN_STEP = 4
 # surround of the band-pass, in units of the scale: 2 = two rungs of the sqrt(2) ladder, so the
 # ladder's blurs serve as each other's surrounds (n + 2 blurs for n scales)
 _SURROUND = 2.0
+
+
+class _Owned:
+    """The work arrays of one cache (:func:`detect`), taken from the free list of dropped caches' arrays or
+    new, and given back to it when the cache (so this object) is dropped. Only arrays that nothing outside
+    :func:`detect` sees are owned (they are overwritten in full before being read)."""
+
+    __slots__ = ("arrays",)
+
+    def __init__(self):
+        self.arrays = []
+
+    def take(self, shape, dtype):
+        """An array of this shape and dtype (contents undefined), owned from now on."""
+        shape, dtype = tuple(int(n) for n in shape), np.dtype(dtype)
+        a = None
+        with _FREE_LOCK:
+            for k in range(len(_FREE) - 1, -1, -1):
+                if _FREE[k].shape == shape and _FREE[k].dtype == dtype:
+                    a = _FREE.pop(k)
+                    break
+        if a is None:
+            a = np.empty(shape, dtype)
+        self.arrays.append(a)
+        return a
+
+    def __del__(self):
+        try:
+            with _FREE_LOCK:
+                _FREE.extend(self.arrays)
+                total = sum(a.nbytes for a in _FREE)
+                while _FREE and total > _RECYCLE_BYTES:
+                    total -= _FREE.pop(0).nbytes
+        except Exception:       # interpreter shutdown
+            pass
+        self.arrays = []
 
 
 def bandpass(work, s: float):
@@ -111,7 +155,8 @@ def _blur_ladder(work, sigmas, pool=None):
 
     ``pool``: a dict (a movie's cache) whose arrays, one per output, the blurs are written into, frame after
     frame (the same values; fresh full-size arrays every frame cost the kernel's page faults, ~1 ms per
-    640 x 424 frame). The outputs are then overwritten by the next call with that pool."""
+    640 x 424 frame), taken from its ``owned`` (an :class:`_Owned`) when it has one. The outputs are then
+    overwritten by the next call with that pool."""
     import cv2
 
     H, W = work.shape
@@ -119,15 +164,21 @@ def _blur_ladder(work, sigmas, pool=None):
     if pool is not None:
         key = (H, W, tuple(sigmas))
         if pool.get("key") != key:
+            owned = pool.get("owned")
             pool.clear()
+            if owned is not None:
+                pool["owned"] = owned
             pool["key"] = key
             pool["bufs"] = [[None, None] for _ in sigmas]
         bufs = pool["bufs"]
+    owned = pool.get("owned") if pool is not None else None
 
     def into(i, j, fn, *args, **kw):
         # fn(*args, dst=<array i, j of the pool>, **kw), the array kept for the next frame (cv2 fills it)
         if bufs is None:
             return fn(*args, **kw)
+        if bufs[i][j] is None and owned is not None:
+            bufs[i][j] = owned.take((H, W), work.dtype)
         out = fn(*args, dst=bufs[i][j], **kw) if bufs[i][j] is not None else fn(*args, **kw)
         bufs[i][j] = out
         return out
@@ -749,6 +800,8 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
     ladder = sorted(set(scales) | {_SURROUND * x for x in scales})
     # (with a cache, into the arrays of the previous frame: nothing keeps the blurs beyond this call)
     pool = cache.setdefault("blur_pool", {}) if cache is not None else None
+    if pool is not None and "owned" not in pool and _RECYCLE_BYTES > 0:
+        pool["owned"] = _Owned()
     blurs = dict(zip(ladder, _blur_ladder(work, ladder, pool)))
     # the noise and background maps describe the camera and the illumination, which a movie keeps from
     # frame to frame: with a cache they are measured on one frame and reused for the next ones (see
@@ -805,7 +858,8 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         dt = np.float32 if _IVS32 else np.float64
         buf = pool.get("ivs") if pool is not None and _POOL_IVS else None
         if buf is None or buf.shape != (len(scales), H, W) or buf.dtype != dt:
-            buf = np.empty((len(scales), H, W), dt)
+            owned = pool.get("owned") if pool is not None else None
+            buf = owned.take((len(scales), H, W), dt) if owned is not None else np.empty((len(scales), H, W), dt)
         if _IVS32:
             # cv2's bilinear interpolation between tile centres (the geometry of _inverse_noise_rows), float32
             for i, g in enumerate(invs):
