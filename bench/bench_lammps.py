@@ -156,7 +156,7 @@ def _timed(cmd, env, cwd, log: Path, cpu: dict | None = None) -> float:
     return wall
 
 
-OMP_WAIT = None  # --omp-wait: OMP_WAIT_POLICY for both codes (None: the OpenMP library's default)
+OMP_WAIT = None  # --omp-wait: OMP_WAIT_POLICY for both codes (None: sim's short spin for both, thread_env)
 
 
 def thread_env(env: dict, threads: int) -> dict:
@@ -164,12 +164,18 @@ def thread_env(env: dict, threads: int) -> dict:
     e["NUMBA_NUM_THREADS"] = str(threads)
     e["OMP_NUM_THREADS"] = str(threads)
     e["PTRACK_THREADS"] = str(threads)  # ours: the DEM pair kernel's threads (sim.dem.dem_threads)
-    # The library default (spin a while at a barrier, then sleep) is what a user gets and suits an idle
-    # machine; PASSIVE (sleep at once) costs a wake-up per parallel region (ours 0.85x from a second thread
-    # at N = 1.5e4, LAMMPS 0.79x, 3 Dec), but on an oversubscribed machine spinning barriers stall when a
-    # thread loses its core (LAMMPS -sf omp at N = 1000, T = 2 once ran 100x slower than T = 1).
+    # Both codes' OpenMP is libgomp.  What a user of ours gets is sim's short spin (GOMP_SPINCOUNT, set by
+    # `import sim` unless a policy is given; sim/__init__.py): LAMMPS gets the same.  libgomp's own default
+    # (300 000 turns) stalls threaded runs whenever another process shares a core; PASSIVE (sleep at once)
+    # costs a wake-up per parallel region.
+    import sim
+
     if OMP_WAIT:
         e["OMP_WAIT_POLICY"] = OMP_WAIT
+        if sim.openmp_spin_set:
+            e.pop("GOMP_SPINCOUNT", None)
+    elif "GOMP_SPINCOUNT" in os.environ:
+        e.setdefault("GOMP_SPINCOUNT", os.environ["GOMP_SPINCOUNT"])
     return e
 
 
@@ -414,7 +420,7 @@ def main(argv=None):
     ap.add_argument("--no-study", action="store_true", help="skip the cold/warm deposition example 1 timing")
     ap.add_argument("--no-restitution", action="store_true", help="skip the head-on collision check")
     ap.add_argument("--omp-wait", choices=("active", "passive"), default=None,
-                    help="OMP_WAIT_POLICY of both codes (default: the OpenMP library's own; passive on a busy machine)")
+                    help="OMP_WAIT_POLICY of both codes (default: sim's short spin, GOMP_SPINCOUNT, for both)")
     args = ap.parse_args(argv)
     global OMP_WAIT
     OMP_WAIT = args.omp_wait.upper() if args.omp_wait else None

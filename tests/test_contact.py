@@ -279,3 +279,25 @@ def test_threaded_verlet_stepper_matches_serial():
     for threads in (2, 3):
         np.testing.assert_allclose(out[threads][0], out[1][0], rtol=0, atol=1e-12)
         np.testing.assert_allclose(out[threads][1], out[1][1], rtol=0, atol=1e-9 * vscale)
+
+
+@pytest.mark.parametrize("env, expect", [({}, "10000"), ({"GOMP_SPINCOUNT": "77"}, "77"),
+                                         ({"OMP_WAIT_POLICY": "PASSIVE"}, None)])
+def test_openmp_spin_default_is_set_before_libgomp_loads(env, expect):
+    # a short OpenMP spin unless the user chose a policy; it only acts if set before sim.dem loads libgomp
+    import os
+    import subprocess
+    import sys
+
+    code = ("import os, sim.dem; maps = open('/proc/self/maps').read(); "
+            "print(os.environ.get('GOMP_SPINCOUNT'), 'libgomp' in maps)")
+    e = {k: v for k, v in os.environ.items() if k not in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY")}
+    e.update(env)
+    out = subprocess.run([sys.executable, "-c", code], env=e, capture_output=True, text=True, check=True).stdout
+    spin, loaded = out.split()
+    assert spin == str(expect)
+    if loaded == "True":  # the variable must already be there when libgomp is loaded, i.e. by `import sim`
+        code2 = ("import os, sys; import sim; "
+                 "print('libgomp' in open('/proc/self/maps').read())")
+        assert subprocess.run([sys.executable, "-c", code2], env=e, capture_output=True, text=True,
+                              check=True).stdout.split() == ["False"]
