@@ -947,10 +947,12 @@ def _fit_one(img, r, c, half, sigma0, gain, offset, rvar, poisson, max_iter, out
     for i in range(nr):
         for j in range(nc):
             v = (img[r0 + i, c0 + j] - offset) / gain - b0
-            if v > 0:
-                sw += v
-                sx += v * (c0 + j)
-                sy += v * (r0 + i)
+            # the excess only: a pixel at or below b0 (or NaN) adds exact zeros (the sums are >= +0), a select
+            # instead of a branch that a noisy window mispredicts at every other pixel
+            v = v if v > 0 else 0.0
+            sw += v
+            sx += v * (c0 + j)
+            sy += v * (r0 + i)
     if sw <= 0:
         return False, 0
     out[0] = sx / sw
@@ -974,11 +976,13 @@ def _moments(img, r, c, half, x, y, bg):
     for rr in range(max(0, r - half), min(h - 1, r + half) + 1):
         for cc in range(max(0, c - half), min(w - 1, c + half) + 1):
             v = img[rr, cc] - bg
-            if v > 0:
-                sw += v
-                sxx += v * (cc - x) ** 2
-                syy += v * (rr - y) ** 2
-                sxy += v * (cc - x) * (rr - y)
+            # as _fit_one's centroid: pixels at or below the background add exact zeros (x, y are finite
+            # fitted centres), a select instead of a mispredicted branch
+            v = v if v > 0 else 0.0
+            sw += v
+            sxx += v * (cc - x) ** 2
+            syy += v * (rr - y) ** 2
+            sxy += v * (cc - x) * (rr - y)
     if sw <= 0:
         return 0.0
     a = sxx / sw
@@ -1027,8 +1031,7 @@ def _fit_group(img, r0, r1, c0, c1, x0, y0, amp, sigma0, gain, offset, rvar, poi
     for i in range(nr):
         for j in range(nc):
             v = (img[r0 + i, c0 + j] - offset) / gain - b0
-            if v > 0:
-                sw += v
+            sw += v if v > 0 else 0.0       # the excess (a select: see _fit_one)
     asum = 0.0
     for k in range(K):
         asum += max(amp[k], 1e-12)
@@ -1141,13 +1144,13 @@ def _split_spots(img, rows, cols, params, cand, half, sigma0, gain, offset, rvar
         for i in range(nr):
             for j in range(nc):
                 v = (img[r0 + i, c0 + j] - offset) / gain - bgc
-                if v > 0:
-                    dx = c0 + j - xc
-                    dy = r0 + i - yc
-                    sw += v
-                    sxx += v * dx * dx
-                    syy += v * dy * dy
-                    sxy += v * dx * dy
+                v = v if v > 0 else 0.0     # the excess, exact zeros elsewhere (a select: see _fit_one)
+                dx = c0 + j - xc
+                dy = r0 + i - yc
+                sw += v
+                sxx += v * dx * dx
+                syy += v * dy * dy
+                sxy += v * dx * dy
         if sw <= 0:
             continue
         a = sxx / sw
