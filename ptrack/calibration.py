@@ -32,7 +32,7 @@ import pandas as pd
 from numba import njit
 
 from .errors import UserError, check_positive, require_file
-from .gdpt.ncc import Templates, ncc, ncc_pages, ncc_pages_strided
+from .gdpt.ncc import FrameSpectrum, Templates, ncc, ncc_pages, ncc_pages_strided
 
 _COMMON_WINDOW = True     # compare the pages around the best one on one window (see _match_one)
 _COMMON_PAGES = 2         # pages either side of the best one (4: diffusion3d a little better, a close pair worse)
@@ -992,14 +992,22 @@ def _candidates(padded, pad, tmpl, calib: Calibration, shape, mask, n_templates:
     pages = np.unique(np.round(np.linspace(0, K - 1, min(n_templates, K))).astype(int))
     cmap = np.full((H, W), -1.0, np.float32)
     which = np.zeros((H, W), np.int32)
-    for k in pages:
-        t = tmpl[k]
-        R = cv2.matchTemplate(padded, t, cv2.TM_CCOEFF_NORMED)
-        oy, ox = int(round(calib.centers[k, 0])), int(round(calib.centers[k, 1]))
-        R = np.nan_to_num(R[pad - oy: pad - oy + H, pad - ox: pad - ox + W], nan=-1.0)
-        better = R > cmap
-        which[better] = k
-        np.maximum(cmap, R, out=cmap)
+    if isinstance(tmpl, Templates):
+        # one forward FFT of the frame for all the templates (cached spectra), normalised from integral images;
+        # correlations below c_min left out (no candidate there, and lower than any candidate they neighbour)
+        fs = FrameSpectrum(padded)
+        for k in pages:
+            oy, ox = int(round(calib.centers[k, 0])), int(round(calib.centers[k, 1]))
+            fs.ncc_max(tmpl, int(k), pad - oy, pad - ox, cmap, which, c_min)
+    else:
+        for k in pages:
+            t = tmpl[k]
+            R = cv2.matchTemplate(padded, t, cv2.TM_CCOEFF_NORMED)
+            oy, ox = int(round(calib.centers[k, 0])), int(round(calib.centers[k, 1]))
+            R = np.nan_to_num(R[pad - oy: pad - oy + H, pad - ox: pad - ox + W], nan=-1.0)
+            better = R > cmap
+            which[better] = k
+            np.maximum(cmap, R, out=cmap)
     local = cmap >= cv2.dilate(cmap, np.ones((3, 3), np.uint8))
     ok = local & mask & (cmap >= c_min)
     r, c = np.nonzero(ok)

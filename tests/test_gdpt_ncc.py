@@ -138,3 +138,42 @@ def test_direct_max_raises_the_direct_sum_limit():
     got = N.ncc(win, t, direct_max=225)
     assert np.array_equal(got, N._ncc_direct(win, t))
     np.testing.assert_allclose(got, ref, atol=2e-6)
+
+
+def test_frame_spectrum_ncc_is_opencv_normed_map_and_floor_keeps_the_maxima_above_it():
+    """FrameSpectrum.ncc_max (one FFT of the frame, cached template spectra, integral-image normalisation) gives
+    OpenCV's TM_CCOEFF_NORMED at the requested corners, folded into the running maximum over pages; with a floor,
+    every value at or above it (and its page) is the same as without."""
+    import cv2
+
+    from ptrack.gdpt.ncc import FrameSpectrum, Templates
+
+    rng = np.random.default_rng(4)
+    img = np.zeros((120, 130), np.float32)
+    img[20:100, 15:115] = rng.normal(0, 1, (80, 100))
+    yy, xx = np.mgrid[:80, :100]
+    img[20:100, 15:115] += 6 * np.exp(-((yy - 40) ** 2 + (xx - 55) ** 2) / 30.0)
+    tm = Templates(np.outer(*[np.exp(-0.5 * (np.arange(T) - T // 2) ** 2 / s ** 2)] * 2).astype(np.float32)
+                   + rng.normal(0, 0.01, (T, T)).astype(np.float32) for T, s in ((9, 1.5), (15, 3.0), (21, 4.0)))
+    fs = FrameSpectrum(img)
+    H, W = 70, 90
+    cmap = np.full((H, W), -1.0, np.float32)
+    which = np.zeros((H, W), np.int32)
+    want = np.full((H, W), -1.0, np.float32)
+    wk = np.zeros((H, W), np.int32)
+    for k, (top, left) in enumerate(((25, 20), (22, 18), (19, 16))):
+        fs.ncc_max(tm, k, top, left, cmap, which)
+        R = cv2.matchTemplate(img, tm[k], cv2.TM_CCOEFF_NORMED)[top:top + H, left:left + W]
+        wk[R > want] = k
+        np.maximum(want, R, out=want)
+        assert np.abs(cmap - want).max() < 2e-4
+    assert np.mean(which == wk) > 0.999
+    c2 = np.full((H, W), -1.0, np.float32)
+    w2 = np.zeros((H, W), np.int32)
+    for k, (top, left) in enumerate(((25, 20), (22, 18), (19, 16))):
+        fs.ncc_max(tm, k, top, left, c2, w2, floor=0.3)
+    hi = cmap >= 0.3
+    assert hi.sum() > 20 and np.array_equal(c2[hi], cmap[hi]) and np.array_equal(w2[hi], which[hi])
+    assert np.all(c2[~hi] < 0.3)
+    with pytest.raises(ValueError):
+        fs.ncc_max(tm, 2, 110, 0, cmap, which)

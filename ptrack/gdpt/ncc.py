@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["ncc", "ncc_pages", "ncc_pages_strided", "ncc_corners", "DIRECT_MAX"]
+__all__ = ["ncc", "ncc_pages", "ncc_pages_strided", "ncc_corners", "FrameSpectrum", "DIRECT_MAX"]
 
 DIRECT_MAX = 121     # shifts (rows x cols of the map) up to which the direct sum is used (11 x 11)
 FLAT_MAX = 8192      # template span (px, see _ncc_map) up to which a shift's sum is one flat dot product
@@ -284,12 +284,125 @@ def ncc_corners(img, tmpl: "Templates", pages, tops, lefts, n: int) -> np.ndarra
     return out
 
 
+@njit(cache=True)
+def _ncc_region_max(C, S, SQ, T, tn, top, left, k, floor, cmap, which):
+    # the normalised correlation of one zero-mean template (side T, sum of squares tn) at the template corners
+    # (top + i, left + j) of cmap's shape, from its whole-frame correlation C (FFT) and the frame's integral images S,
+    # SQ (cv2.integral2, float64); cmap, which: the running maximum over templates and its template (in place).
+    # Values below ``floor`` (> 0) may be left out: a correlation r >= floor needs C > 0 and C^2 >= floor^2 var tn,
+    # tested (with 1 % to spare) before the square root and division
+    H, W = cmap.shape
+    N = T * T
+    lim = (0.99 * floor) ** 2 * tn if floor > 0 else -1.0
+    for i in range(H):
+        a = top + i
+        for j in range(W):
+            b = left + j
+            c = C[a, b]
+            if lim >= 0 and c <= 0:
+                continue
+            s1 = S[a + T, b + T] - S[a, b + T] - S[a + T, b] + S[a, b]
+            s2 = SQ[a + T, b + T] - SQ[a, b + T] - SQ[a + T, b] + SQ[a, b]
+            var = max(s2 - s1 * s1 / N, 0.0)
+            if c * c < lim * var:
+                continue
+            d = np.sqrt(var * tn)
+            r = min(max(c / d, -1.0), 1.0) if d > 0 else -1.0
+            v = np.float32(r)
+            if v > cmap[i, j]:
+                cmap[i, j] = v
+                which[i, j] = k
+
+
+class FrameSpectrum:
+    """One frame's 2-D FFT, its integral images and the templates' spectra: whole-frame correlations with several
+    templates for one forward transform (OpenCV's ``matchTemplate`` transforms frame and template again for
+    every template).
+
+    Parameters
+    ----------
+    img : (H, W) float32 array
+        The (zero-padded) frame.
+    """
+
+    def __init__(self, img):
+        import scipy.fft as sf
+
+        self.img = np.ascontiguousarray(img, np.float32)
+        H, W = self.img.shape
+        # (no wrap-around: a template corner inside the frame reads frame rows < H <= the transform's length)
+        self.shape = (sf.next_fast_len(H, True), sf.next_fast_len(W, True))
+        self.F = sf.rfft2(self.img.astype(np.float64), self.shape, workers=1)
+        self._integral = None
+
+    @property
+    def integral(self):
+        """(S, SQ): the frame's integral image and integral of squares (float64, one row and column more)."""
+        if self._integral is None:
+            import cv2
+
+            self._integral = cv2.integral2(self.img, sdepth=cv2.CV_64F)
+        return self._integral
+
+    def correlate(self, tmpl: "Templates", k: int, zero_mean: bool = True) -> np.ndarray:
+        """sum_uv img[a + u, b + v] t[u, v] at every template corner (a, b) (rows and columns up to the
+        transform's length; those with the template inside the frame are OpenCV's ``TM_CCORR`` map),
+        float64; ``zero_mean``: of the template minus its mean (``TM_CCOEFF``)."""
+        import scipy.fft as sf
+
+        return sf.irfft2(self.F * tmpl.spectrum(k, self.shape, zero_mean), self.shape, workers=1)
+
+    def ncc_max(self, tmpl: "Templates", k: int, top: int, left: int, cmap, which, floor: float = -1.0) -> None:
+        """Page ``k``'s normalised correlation (OpenCV's ``TM_CCOEFF_NORMED``; -1 on a constant window) at the
+        template corners (top + i, left + j), i, j over cmap's shape, folded into the running maximum ``cmap``
+        (float32) and its page ``which`` (int32), in place. The corners' windows must lie inside the frame.
+        ``floor`` > 0: correlations below it may be left out (cmap and which then hold the maximum over the
+        pages only where it is at least ``floor``)."""
+        T = int(tmpl.packed[2][k])
+        if top < 0 or left < 0 or top + cmap.shape[0] + T - 1 > self.img.shape[0] \
+                or left + cmap.shape[1] + T - 1 > self.img.shape[1]:
+            raise ValueError("template windows leave the frame")
+        S, SQ = self.integral
+        _ncc_region_max(self.correlate(tmpl, k), S, SQ, T, tmpl.norm64(k), int(top), int(left), int(k),
+                        float(floor), cmap, which)
+
+
 class Templates(list):
     """A list of square float32 templates that also holds them packed in one buffer (for :func:`ncc_pages`)."""
 
     _packed = None
     _zero_mean = None
     _layouts = None
+    _spectra = None
+
+    def _zm64(self, k):
+        t = np.asarray(self[k], np.float64)
+        return t - t.mean()
+
+    def norm64(self, k: int) -> float:
+        """Sum of squares of template k minus its mean, in double precision (the spectra's template; cached)."""
+        if self._spectra is None:
+            self._spectra = {}
+        v = self._spectra.get(("norm", int(k)))
+        if v is None:
+            v = self._spectra[("norm", int(k))] = float((self._zm64(k) ** 2).sum())
+        return v
+
+    def spectrum(self, k: int, shape, zero_mean: bool = True):
+        """Conjugate 2-D FFT (``scipy.fft.rfft2`` at ``shape``, float64) of template k (minus its mean if
+        ``zero_mean``): multiplied with a frame's transform, its correlation at every corner. Cached per page,
+        shape and kind (the same for every frame)."""
+        import scipy.fft as sf
+
+        if self._spectra is None:
+            self._spectra = {}
+        key = (int(k), tuple(int(a) for a in shape), bool(zero_mean))
+        sp = self._spectra.get(key)
+        if sp is None:
+            t = self._zm64(k) if zero_mean else np.asarray(self[k], np.float64)
+            sp = np.conj(sf.rfft2(t, key[1], workers=1))
+            self._spectra[key] = sp
+        return sp
 
     @property
     def packed(self):
