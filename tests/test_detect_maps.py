@@ -232,3 +232,24 @@ def test_a_dropped_cache_gives_its_work_arrays_to_the_next_one():
     ref = D.detect(_frame(6, shape=(150, 170)))
     for k in ("rows", "cols", "scale", "snr", "signal"):
         assert np.array_equal(d3[k], ref[k])
+
+
+def test_scratch_arrays_are_kept_from_frame_to_frame_with_the_same_detections(monkeypatch):
+    # with a cache, the frame's float32 copy, its median, the best-over-scales map and the half-size blurs are
+    # written into the cache's arrays frame after frame; the detections are those without them
+    f0, f1 = _frame(7), _frame(8)
+    c = {}
+    D.detect(f0, cache=c)
+    arrays = dict(c["blur_pool"]["scratch"])
+    assert {"f32", "median", "work", "best"} <= set(arrays)
+    half = list(c["blur_pool"]["half"])
+    d1 = D.detect(f1, cache=c)
+    assert all(c["blur_pool"]["scratch"][k] is a for k, a in arrays.items() if k != "best_other")
+    assert all(a is b for a, b in zip(c["blur_pool"]["half"], half))
+    monkeypatch.setattr(D, "_RECYCLE_BYTES", 0)
+    ref = {}
+    D.detect(f0, cache=ref)
+    assert "owned" not in ref["blur_pool"]
+    r1 = D.detect(f1, cache=ref)
+    for k in ("rows", "cols", "scale", "snr", "signal", "polarity"):
+        assert np.array_equal(d1[k], r1[k])

@@ -132,6 +132,25 @@ class _Owned:
         self.arrays = []
 
 
+def scratch(cache, name, shape, dtype):
+    """A work array of a movie's cache (:func:`detect`'s), kept from frame to frame under ``name``: overwritten
+    in full by every use and read only within one call (not returned), so a movie's frames allocate no fresh
+    full-size temporaries (on a VM each 4 kB page of a fresh array costs ~3 us of page fault; a 640 x 424 frame
+    had ~4 such arrays, ~1000 faults per 5 frames). ``None`` without a cache (or before :func:`detect` made
+    its pool): then the caller allocates as usual."""
+    pool = cache.get("blur_pool") if cache is not None else None
+    owned = pool.get("owned") if pool is not None else None
+    if owned is None:
+        return None
+    shape, dtype = tuple(int(n) for n in shape), np.dtype(dtype)
+    arrays = pool.setdefault("scratch", {})
+    a = arrays.get(name)
+    if a is None or a.shape != shape or a.dtype != dtype:
+        a = owned.take(shape, dtype)
+        arrays[name] = a
+    return a
+
+
 def bandpass(work, s: float):
     """Difference of Gaussians ``G(s) - G(2 s)`` of a float32 frame (cv2, reflected border)."""
     import cv2
@@ -164,10 +183,9 @@ def _blur_ladder(work, sigmas, pool=None):
     if pool is not None:
         key = (H, W, tuple(sigmas))
         if pool.get("key") != key:
-            owned = pool.get("owned")
+            kept = {k: pool[k] for k in ("owned", "scratch") if k in pool}
             pool.clear()
-            if owned is not None:
-                pool["owned"] = owned
+            pool.update(kept)
             pool["key"] = key
             pool["bufs"] = [[None, None] for _ in sigmas]
         bufs = pool["bufs"]
@@ -189,10 +207,22 @@ def _blur_ladder(work, sigmas, pool=None):
     for i, s in enumerate(sigmas):
         if s > 3.0 and min(H, W) >= 32:
             if half is None:
-                half = cv2.resize(prev, (W // 2, H // 2), interpolation=cv2.INTER_AREA)
+                # the half-size arrays alternate between two of the pool's (a blur's source is not its output)
+                hbuf = [owned.take((H // 2, W // 2), prev.dtype), owned.take((H // 2, W // 2), prev.dtype)] \
+                    if owned is not None and pool.get("half") is None else pool.get("half") if owned is not None \
+                    else None
+                if hbuf is not None:
+                    pool["half"] = hbuf
+                hi = 0
+                half = cv2.resize(prev, (W // 2, H // 2), interpolation=cv2.INTER_AREA) if hbuf is None else \
+                    cv2.resize(prev, (W // 2, H // 2), dst=hbuf[0], interpolation=cv2.INTER_AREA)
                 half_s = math.sqrt(prev_s ** 2 + 0.25)      # area reduction ~ a 0.5 px blur at full scale
             ds = math.sqrt(max(s * s - half_s * half_s, 0.01)) / 2.0
-            half = cv2.GaussianBlur(half, _ksize(ds), ds, borderType=cv2.BORDER_REFLECT)
+            if hbuf is None:
+                half = cv2.GaussianBlur(half, _ksize(ds), ds, borderType=cv2.BORDER_REFLECT)
+            else:
+                hi = 1 - hi
+                half = cv2.GaussianBlur(half, _ksize(ds), ds, dst=hbuf[hi], borderType=cv2.BORDER_REFLECT)
             half_s = s
             out.append(into(i, 0, cv2.resize, half, (W, H), interpolation=cv2.INTER_LINEAR))
             continue
@@ -789,19 +819,38 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         raise UserError(f"scales {scales} must be positive", "give spot widths in px")
     u = false_alarm_threshold(scales, float(rate)) if snr is None else float(snr)
     # the frame as float32 once (the maps, the ring tests and the ring maps read it too)
-    f32 = work = np.ascontiguousarray(frame, np.float32)
+    pool = cache.setdefault("blur_pool", {}) if cache is not None else None
+    if pool is not None and "owned" not in pool and _RECYCLE_BYTES > 0:
+        pool["owned"] = _Owned()
+    # (with a cache, into its scratch arrays: the same values as ascontiguousarray's and astype's conversions)
+    f32 = np.ascontiguousarray(frame) if frame.dtype == np.float32 else None
+    if f32 is None or f32 is not frame:
+        buf = scratch(cache, "f32", np.shape(frame), np.float32)
+        if buf is None:
+            f32 = np.ascontiguousarray(frame, np.float32)
+        else:
+            np.copyto(buf, frame, casting="unsafe")
+            f32 = buf
+    work = f32
     if median:
         # the 3x3 median of 8/16-bit frames by cv2's integer kernel (2x faster than its float32 one), then
         # float32: the same values (a median selects one of its nine, and the integers are exact in float32)
         native = frame.dtype in (np.uint8, np.uint16) and frame.ndim == 2
-        work = cv2.medianBlur(np.ascontiguousarray(frame), 3).astype(np.float32) if native else \
-            cv2.medianBlur(work, 3)
+        if native:
+            mbuf = scratch(cache, "median", frame.shape, frame.dtype)
+            m8 = cv2.medianBlur(np.ascontiguousarray(frame), 3) if mbuf is None else \
+                cv2.medianBlur(np.ascontiguousarray(frame), 3, dst=mbuf)
+            work = scratch(cache, "work", frame.shape, np.float32)
+            if work is None:
+                work = m8.astype(np.float32)
+            else:
+                np.copyto(work, m8)
+        else:
+            buf = scratch(cache, "work", f32.shape, np.float32)
+            work = cv2.medianBlur(f32, 3) if buf is None else cv2.medianBlur(f32, 3, dst=buf)
     H, W = work.shape
     ladder = sorted(set(scales) | {_SURROUND * x for x in scales})
     # (with a cache, into the arrays of the previous frame: nothing keeps the blurs beyond this call)
-    pool = cache.setdefault("blur_pool", {}) if cache is not None else None
-    if pool is not None and "owned" not in pool and _RECYCLE_BYTES > 0:
-        pool["owned"] = _Owned()
     blurs = dict(zip(ladder, _blur_ladder(work, ladder, pool)))
     # the noise and background maps describe the camera and the illumination, which a movie keeps from
     # frame to frame: with a cache they are measured on one frame and reused for the next ones (see
@@ -875,7 +924,8 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         # the SNR map maximised over scale (and its scale index) of one sign, and with `both` of the other
         # sign too, from the same pass (the polarity vote)
         n = (H, W) if both else (1, 1)       # the other sign's map: unused without `both`
-        out = [np.empty((H, W), np.float32), np.empty(n, np.float32)]
+        out = [scratch(cache, "best", (H, W), np.float32), scratch(cache, "best_other", n, np.float32)]
+        out = [np.empty(sh, np.float32) if a is None else a for a, sh in zip(out, ((H, W), n))]
         if ivs is not None:
             _best_over_scales(b1s, b2s, ivs, 0, float(sign), *out, both)
         else:

@@ -15,7 +15,7 @@ import pandas as pd
 from ..errors import UserError
 from .fit import fit_spots
 from .peaks import _default_separation, detect_raw, find_peaks
-from .detect import FALSE_ALARM_RATE, detect
+from .detect import FALSE_ALARM_RATE, detect, scratch
 from .preprocess import fast_median, median3, noise_sigma
 from .radial import has_dip, image_extent, profile_centres, radial_centres
 
@@ -391,7 +391,10 @@ def _locate_multiscale(frame, snr=None, gain=1.0, offset=0.0, read_noise=0.0, br
     n = len(rows)
     # background-subtracted image, particles positive (dark particles: the background minus the frame)
     bgmap, nzmap = det["background_map"], det["noise_map"]
-    sub = np.subtract(raw, bgmap, dtype=np.float32) if polarity > 0 else np.subtract(bgmap, raw, dtype=np.float32)
+    # (with a cache, into its scratch array: see ptrack.image.detect.scratch)
+    buf = scratch(cache, "sub", raw.shape, np.float32)
+    sub = np.subtract(raw, bgmap, dtype=np.float32, out=buf) if polarity > 0 else \
+        np.subtract(bgmap, raw, dtype=np.float32, out=buf)
     # the frame's noise (counts): the median of its noise map, measured by detect once per map (frames that
     # share the maps through the cache share it; a full-frame median costs as much as the fits of a sparse frame)
     noise = det["noise_map_median"]
