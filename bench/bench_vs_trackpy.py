@@ -16,7 +16,8 @@
    estimate) against ``trackpy.batch`` + ``trackpy.link`` given the best
    setting of part 1 and the search range ptrack found (trackpy's best case).
 
-Run: ``.venv/bin/python bench/bench_vs_trackpy.py [--quick] [--part 3]``
+Run: ``.venv/bin/python bench/bench_vs_trackpy.py [--quick] [--part 3] [--real-only]`` (``--real-only``: part 3 on
+the real movie alone, no rendered sizes and no cold start)
 """
 from __future__ import annotations
 
@@ -84,9 +85,10 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--part", type=int, choices=(1, 2, 3), help="run one part only (3 uses d=7, minmass=200)")
+    ap.add_argument("--real-only", action="store_true", help="part 3 on trackpy's real movie only")
     args = ap.parse_args()
-    if args.part == 3:
-        part3(args.quick, 7, 200)
+    if args.part == 3 or args.real_only:
+        part3(args.quick, 7, 200, real_only=args.real_only)
         return
     optics = render.Optics()
     cam = render.Camera(photons=2000 / 0.6, background=20.0)
@@ -200,7 +202,7 @@ def _cold_warm():
     return [float(v) for v in out.stdout.split()]
 
 
-def part3(quick, d, mm):
+def part3(quick, d, mm, real_only=False):
     import cv2
 
     cv2.setNumThreads(1)
@@ -210,13 +212,14 @@ def part3(quick, d, mm):
     rng = np.random.default_rng(9)
     reps = 1 if quick else 3
     print("\n## 3. locate + link, ptrack default (no option) vs trackpy.batch + trackpy.link, one core each")
-    print("command: .venv/bin/python bench/bench_vs_trackpy.py --part 3" + (" --quick" if quick else ""))
+    print("command: .venv/bin/python bench/bench_vs_trackpy.py --part 3" + (" --quick" if quick else "")
+          + (" --real-only" if real_only else ""))
     print("    (times: CPU ms per frame of the one process (cv2 and trackpy on one thread), the fastest of %d runs of"
           " each side, alternating (%d on the real movie); speed-up = trackpy CPU / ptrack CPU, and in brackets the"
           " same from wall time on this shared machine)" % (reps, 2 * reps))
     print(f"{'frames':>18} {'N/frame':>7} | {'ptrack loc':>10} {'link':>6} {'total':>6} {'RMSE':>6} {'rec':>5} {'prec':>5} | "
           f"{'trackpy loc':>11} {'link':>6} {'total':>6} {'RMSE':>6} {'rec':>5} {'prec':>5} | {'speed-up':>8} {'(wall)':>6}")
-    for size, spacing, n in ((256, 24, 20), (512, 40, 20), (1024, 60, 10), (2048, 100, 5)):
+    for size, spacing, n in () if real_only else ((256, 24, 20), (512, 40, 20), (1024, 60, 10), (2048, 100, 5)):
         n = max(3, n // 2) if quick else n
         table, t = grid_truth(n, (size, size), spacing, rng, margin=16, px=px)
         frames = list(render.render_frames(table, shape=(size, size), camera=cam, seed=size))
@@ -244,6 +247,7 @@ def part3(quick, d, mm):
         frames = [cv2.imread(str(p), cv2.IMREAD_UNCHANGED) for p in sorted((real / "frames").glob("*.png"))]
         ref = pd.read_csv(real / "reference" / "trackpy_locate_frame0.csv")[["x", "y"]].to_numpy()
         _ours_locate_link(frames[:2], cam)          # warm up (the brightfield kernels)
+        _trackpy_locate_link(frames[:2], 9, 140, 5.0, invert=True)     # (with --real-only, trackpy's first call)
         tl = tk = ttl = ttk = np.full(2, np.inf)
         for _ in range(2 * reps):                   # 5 frames only: the movie is run several times, each in full
             feats, linked, a, b = _ours_locate_link(frames, cam)
@@ -263,6 +267,8 @@ def part3(quick, d, mm):
               f"{(ttl[0] + ttk[0]) / (tl[0] + tk[0]):8.2f} ({(ttl[1] + ttk[1]) / (tl[1] + tk[1]):4.2f})")
     print("    (RMSE px over matches within 2 px; trackpy given d=%d, minmass=%d and ptrack's search range;" % (d, mm))
     print("     real movie: trackpy diameter=9, minmass=140, invert=True, as its reference; machine shared with other jobs)")
+    if real_only:
+        return
     cold, warm = _cold_warm()
     print(f"    cold start (fresh interpreter: import + first 256^2 frame, numba kernels from their cache) {cold:.2f} s;"
           f" the next frame {1000 * warm:.1f} ms (wall)")
