@@ -213,21 +213,25 @@ def test_best_over_scales_in_float32_is_the_float64_pass_bit_for_bit():
 
 
 def test_a_dropped_cache_gives_its_work_arrays_to_the_next_one():
-    # the blur ladder's outputs and the full-size inverse-noise maps of a dropped cache are reused by the next
-    # cache (no fresh memory to fault in on a movie's first frame), with the same detections; a cache of
-    # another frame shape takes new ones
+    # the arrays a dropped cache owned (blur ladder, inverse-noise maps, scratch arrays, the frame's background
+    # and noise maps) are reused by the next cache (no fresh memory to fault in on a movie's first frame), with
+    # the same detections, except those a caller still holds (here a returned detect result's maps and an
+    # array read from the cache); a cache of another frame shape takes new ones
     f = _frame(5)
     c1 = {}
     d1 = D.detect(f, cache=c1)
-    mine = list(c1["blur_pool"]["owned"].arrays)
-    assert any(a is c1["ivs_full"] for a in mine) and len(mine) >= 1 + len(D.DEFAULT_SCALES)
+    mine = {id(a) for a in c1["blur_pool"]["owned"].arrays}
+    held = c1["ivs_full"]
+    assert id(held) in mine and id(d1["background_map"]) in mine and len(mine) >= 1 + len(D.DEFAULT_SCALES)
     del c1
     c2 = {}
     d2 = D.detect(f, cache=c2)
-    again = c2["blur_pool"]["owned"].arrays
-    assert sum(any(a is b for b in mine) for a in again) == len(mine)
+    again = {id(a) for a in c2["blur_pool"]["owned"].arrays}
+    kept = {id(held), id(d1["background_map"]), id(d1["noise_map"])}
+    assert mine - kept <= again and not kept & again
     for k in ("rows", "cols", "scale", "snr", "signal"):
         assert np.array_equal(d1[k], d2[k])
+    assert np.array_equal(d1["background_map"], d2["background_map"])
     d3 = D.detect(_frame(6, shape=(150, 170)), cache={})
     ref = D.detect(_frame(6, shape=(150, 170)))
     for k in ("rows", "cols", "scale", "snr", "signal"):

@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import functools
 import math
+import sys
 import threading
 
 import numba as nb
@@ -96,10 +97,20 @@ _RN_MEDIAN_STEP = 4
 _SURROUND = 2.0
 
 
+def _to_free_list(arrays):
+    # the arrays onto the free list, the oldest dropped beyond _RECYCLE_BYTES
+    with _FREE_LOCK:
+        _FREE.extend(arrays)
+        total = sum(a.nbytes for a in _FREE)
+        while _FREE and total > _RECYCLE_BYTES:
+            total -= _FREE.pop(0).nbytes
+
+
 class _Owned:
-    """The work arrays of one cache (:func:`detect`), taken from the free list of dropped caches' arrays or
-    new, and given back to it when the cache (so this object) is dropped. Only arrays that nothing outside
-    :func:`detect` sees are owned (they are overwritten in full before being read)."""
+    """The work arrays of one cache (:func:`detect`): taken from the free list or new, given back to it when
+    the cache (so this object) is dropped, or by :meth:`give`. An array of the free list is handed out again
+    only once the list holds its only reference (a caller may still hold a returned map, a view of one, or an
+    array read from the cache); every array is overwritten in full before it is read."""
 
     __slots__ = ("arrays",)
 
@@ -112,7 +123,8 @@ class _Owned:
         a = None
         with _FREE_LOCK:
             for k in range(len(_FREE) - 1, -1, -1):
-                if _FREE[k].shape == shape and _FREE[k].dtype == dtype:
+                # 2 references: the list's and getrefcount's argument (a view holds one to its base)
+                if _FREE[k].shape == shape and _FREE[k].dtype == dtype and sys.getrefcount(_FREE[k]) == 2:
                     a = _FREE.pop(k)
                     break
         if a is None:
@@ -120,13 +132,15 @@ class _Owned:
         self.arrays.append(a)
         return a
 
+    def give(self, *arrays):
+        """These arrays no longer owned: onto the free list (handed out again once nothing refers to them)."""
+        gone = [a for a in self.arrays if any(a is b for b in arrays)]
+        self.arrays = [a for a in self.arrays if not any(a is b for b in arrays)]
+        _to_free_list(gone)
+
     def __del__(self):
         try:
-            with _FREE_LOCK:
-                _FREE.extend(self.arrays)
-                total = sum(a.nbytes for a in _FREE)
-                while _FREE and total > _RECYCLE_BYTES:
-                    total -= _FREE.pop(0).nbytes
+            _to_free_list(self.arrays)
         except Exception:       # interpreter shutdown
             pass
         self.arrays = []
@@ -353,7 +367,7 @@ def _tile_med_mad(sub, nh, nw, th, tw):
     return med, mad
 
 
-def noise_maps(img, tile: int = 64, step: int = 2, what: str = "both", shape=None):
+def noise_maps(img, tile: int = 64, step: int = 2, what: str = "both", shape=None, out=None):
     """Local background (median) and noise (1.4826 MAD) of an image over tiles, interpolated to full size.
 
     Parameters
@@ -372,6 +386,9 @@ def noise_maps(img, tile: int = 64, step: int = 2, what: str = "both", shape=Non
     shape : (H, W), optional
         ``img`` is already sub-sampled by ``step`` from a frame of this shape
         (the maps are returned at full size).
+    out : (background, noise), optional
+        ``what="both"``: float32 arrays of the full shape that the interpolated
+        maps are written into (and returned).
 
     Returns
     -------
@@ -407,6 +424,9 @@ def noise_maps(img, tile: int = 64, step: int = 2, what: str = "both", shape=Non
         return cv2.resize(inv, (W, H), interpolation=cv2.INTER_LINEAR)
     if nh == 1 and nw == 1:
         return np.full((H, W), med[0, 0], np.float32), np.full((H, W), mad[0, 0], np.float32)
+    if out is not None:
+        return (cv2.resize(med, (W, H), dst=out[0], interpolation=cv2.INTER_LINEAR),
+                cv2.resize(mad, (W, H), dst=out[1], interpolation=cv2.INTER_LINEAR))
     return (cv2.resize(med, (W, H), interpolation=cv2.INTER_LINEAR),
             cv2.resize(mad, (W, H), interpolation=cv2.INTER_LINEAR))
 
@@ -878,8 +898,14 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
                 noise0 = float(1.0 / np.float32(fast_median(inv)))
             invs.append(inv)
         # background and noise of the frame itself (the skew correction; the localiser's background)
-        rb, rn = noise_maps(f32,
-                            tile=max(int(tile), int(math.sqrt(H * W / 256.0))), step=2)
+        # (with a cache, into arrays it owns; the previous maps go to the free list, taken again once no caller
+        # holds them: a frame's detect result returns them)
+        owned = pool.get("owned") if pool is not None else None
+        if owned is not None and c.get("rb") is not None:
+            owned.give(c["rb"], c["rn"])
+        rb, rn = noise_maps(f32, tile=max(int(tile), int(math.sqrt(H * W / 256.0))), step=2,
+                            out=None if owned is None else (owned.take((H, W), np.float32),
+                                                            owned.take((H, W), np.float32)))
         # the median of the frame's noise map (a full-frame median: measured once per map, for the level test
         # below and the localiser, see the returned noise_map_median), over every _RN_MEDIAN_STEP-th pixel
         # of each axis: the map is bilinear between tile centres >= 32 px apart, so the sub-sample's median is
