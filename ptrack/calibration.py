@@ -32,7 +32,8 @@ import pandas as pd
 from numba import njit
 
 from .errors import UserError, check_positive, require_file
-from .gdpt.ncc import FrameSpectrum, Templates, ncc, ncc_pages, ncc_pages_strided
+from .gdpt.ncc import (FrameSpectrum, Templates, _ncc_pages, _ncc_pages_strided, layouts_upto, ncc, ncc_pages,
+                       ncc_pages_strided)
 
 _COMMON_WINDOW = True     # compare the pages around the best one on one window (see _match_one)
 _COMMON_PAGES = 2         # pages either side of the best one (4: diffusion3d a little better, a close pair worse)
@@ -59,6 +60,9 @@ _NEIGHBOUR_WEIGHT = None   # re-matches in locate_3d's refine passes weight each
 _SHIFT_STRIDE = 2          # _match_one's coarse pages at every 2nd shift (see there; 1: every shift): diffusion3d
                            # CPU 140 -> 125 ms/frame, bench_pipeline B figures within 0.01 %; bench_gdpt speed
                            # frames 11-25 % less CPU except the largest random images (0.95 um), recall there 0.59 -> 0.57
+_SWEEP_TOL = -1           # _split's sweeps end after one that moved no part by more than this (px) nor changed its page
+_FLIP_SWEEP_TOL = -1      # the same for _flip_branches' sweeps (-1: exactly unchanged placements)
+_MATCH_CORE = True        # _match_one's plain coarse-to-fine path in one numba call (_match_core; False: step by step)
 _FLIP = True               # locate_3d tries the other side of focus for badly explained overlapping images
                            # (_flip_branches): bench_pipeline B diffusion3d recall 0.952 -> 0.955, precision 0.970
                            # -> 0.972, overlapping-image z RMSE 2.06 -> 1.59 % of the depth
@@ -499,6 +503,187 @@ def _subpixel_peaks_kernel(maps, out):
         out[k] = o
 
 
+@njit(cache=True)
+def _gauss3_nb(y0, y1, y2):
+    # _gauss3 of three float32 samples, the same operations: the log-parabola in double precision, the parabola
+    # fallback in float32 (as _parabola_vertex computes it on float32 samples)
+    if y0 > 0 and y1 > 0 and y2 > 0:
+        l0, l1, l2 = math.log(np.float64(y0)), math.log(np.float64(y1)), math.log(np.float64(y2))
+        den = l0 - 2 * l1 + l2
+        if den < 0:
+            return min(max(0.5 * (l0 - l2) / den, -1.0), 1.0)
+    e0 = y0 - y1
+    e2 = y2 - y1
+    two = np.float32(2.0)
+    a = (e0 + e2) / two
+    b = (e2 - e0) / two
+    if a >= 0:
+        return 0.0
+    t = -b / (two * a)
+    if t < -1.0:
+        return -1.0
+    if t > 1.0:
+        return 1.0
+    return np.float64(t)
+
+
+@njit(cache=True)
+def _quadratic_peak_nb(z, c, k, n_points, drop):
+    # _quadratic_peak (n_points < 0: None) on float64 arrays
+    K = len(z)
+    if n_points < 0:
+        miss = 1.0 - c[k]
+        w = 1 if miss < 0.002 else (2 if miss < 0.006 else 4)
+        while w > 1 and c[max(0, k - w):min(K, k + w + 1)].min() < c[k] - drop:
+            w -= 1
+    else:
+        w = max(1, n_points // 2)
+    lo, hi = max(0, k - w), min(K, k + w + 1)
+    if hi - lo < 3:
+        return z[k]
+    return _parabola_fit_vertex(z, c, k, lo, hi)
+
+
+@njit(cache=True)
+def _argmax2(mp):
+    # flat index of the first maximum of a 2-D map
+    ny, nx = mp.shape
+    best = 0
+    v = mp[0, 0]
+    for q in range(1, ny * nx):
+        if mp[q // nx, q % nx] > v:
+            v = mp[q // nx, q % nx]
+            best = q
+    return best
+
+
+@njit(cache=True)
+def _peaks_of(maps, pages):
+    # _subpixel_peaks of maps[pages]
+    sub = np.empty((len(pages), maps.shape[1], maps.shape[2]), np.float32)
+    for q in range(len(pages)):
+        sub[q] = maps[pages[q]]
+    out = np.empty(len(pages))
+    _subpixel_peaks_kernel(sub, out)
+    return out
+
+
+@njit(cache=True)
+def _match_core(img, ri, ci, m, flat, offs, sizes, zflat, tns, lflat, loffs, K, plo, phi, coarse, stride, fine_margin,
+                common, cpages, zc, z_points, cm_drop):
+    # _match_one's batch coarse-to-fine path in one call, the same correlations (gdpt.ncc kernels, same windows and
+    # shift ranges) and the same selection: (page, cm, z, i, j, di, dj). fine_margin, z_points < 0: None
+    n = 2 * m + 1
+    maps = np.full((K, n, n), -1.0, np.float32)
+    f0 = -(-plo // coarse) * coarse
+    first = np.arange(f0, phi, coarse)
+    P = len(first)
+    if stride > 1:
+        nc = (2 * m) // stride + 1
+        cmaps = np.empty((P, nc, nc), np.float32)
+        _ncc_pages_strided(img, ri, ci, m, offs, sizes, zflat, tns, lflat, loffs[2 * m], first, stride, cmaps)
+        pk = np.empty(P)
+        _subpixel_peaks_kernel(cmaps, pk)
+        q = int(np.argmax(pk))
+        best = first[q]
+        ab = _argmax2(cmaps[q])
+        i0, j0 = (ab // nc) * stride, (ab % nc) * stride
+        lo, hi = max(plo, best - coarse - 1), min(phi, best + coarse + 2)
+        fw = m if fine_margin < 0 else max(stride, fine_margin)
+        done = np.arange(lo, hi)
+        a0, a1 = max(i0 - fw, 0), min(i0 + fw, n - 1) + 1
+        b0, b1 = max(j0 - fw, 0), min(j0 + fw, n - 1) + 1
+        tmp = np.empty((len(done), n, n), np.float32)
+        _ncc_pages(img, ri, ci, m, flat, offs, sizes, zflat, tns, lflat, loffs[b1 - b0 - 1], done, 0, a0, a1, b0, b1,
+                   tmp)
+        for q in range(len(done)):
+            maps[done[q]] = tmp[q]
+    else:
+        fm = np.empty((P, n, n), np.float32)
+        _ncc_pages(img, ri, ci, m, flat, offs, sizes, zflat, tns, lflat, loffs[n - 1], first, 0, 0, n, 0, n, fm)
+        bq = 0
+        bv = fm[0].max()
+        for q in range(P):
+            maps[first[q]] = fm[q]
+            v = fm[q].max()
+            if v > bv:
+                bv = v
+                bq = q
+        best = first[bq]
+        lo, hi = max(plo, best - coarse - 1), min(phi, best + coarse + 2)
+        ab = _argmax2(maps[best])
+        i0, j0 = ab // n, ab % n
+        near = fine_margin >= 0 and m > fine_margin
+        nks = 0
+        for k in range(lo, hi):
+            if k % coarse:
+                nks += 1
+        if nks:
+            ks = np.empty(nks, np.int64)
+            nks = 0
+            for k in range(lo, hi):
+                if k % coarse:
+                    ks[nks] = k
+                    nks += 1
+            if near:
+                a0, a1 = max(i0 - fine_margin, 0), min(i0 + fine_margin, n - 1) + 1
+                b0, b1 = max(j0 - fine_margin, 0), min(j0 + fine_margin, n - 1) + 1
+            else:
+                a0, a1, b0, b1 = 0, n, 0, n
+            tmp = np.empty((nks, n, n), np.float32)
+            _ncc_pages(img, ri, ci, m, flat, offs, sizes, zflat, tns, lflat, loffs[b1 - b0 - 1], ks, 0, a0, a1, b0,
+                       b1, tmp)
+            for q in range(nks):
+                maps[ks[q]] = tmp[q]
+        sel = np.zeros(K, np.bool_)
+        for q in range(P):
+            sel[first[q]] = True
+        sel[lo:hi] = True
+        done = np.flatnonzero(sel)
+    peak = np.full(K, -1.0)
+    pd_ = _peaks_of(maps, done)
+    for q in range(len(done)):
+        peak[done[q]] = pd_[q]
+    k = int(np.argmax(peak))
+    cm = peak[k]
+    have_z = False
+    z = 0.0
+    if common:
+        lo2, hi2 = max(plo, k - cpages), min(phi, k + cpages + 1)
+        Tc = sizes[lo2:hi2].min()
+        if sizes[lo2:hi2].max() > Tc:
+            ab = _argmax2(maps[k])
+            i0, j0 = ab // n, ab % n
+            if m > 2:
+                a0, a1 = max(i0 - 2, 0), min(i0 + 2, n - 1) + 1
+                b0, b1 = max(j0 - 2, 0), min(j0 + 2, n - 1) + 1
+            else:
+                a0, a1, b0, b1 = 0, n, 0, n
+            pg = np.arange(lo2, hi2)
+            tmp = np.empty((hi2 - lo2, n, n), np.float32)
+            _ncc_pages(img, ri, ci, m, flat, offs, sizes, zflat, tns, lflat, loffs[b1 - b0 - 1], pg, Tc, a0, a1, b0,
+                       b1, tmp)
+            for q in range(hi2 - lo2):
+                maps[lo2 + q] = tmp[q]
+            pk2 = np.empty(hi2 - lo2)
+            _subpixel_peaks_kernel(tmp, pk2)
+            kk = int(np.argmax(pk2))
+            k, cm = lo2 + kk, pk2[kk]
+            z = _quadratic_peak_nb(zc[lo2:hi2], pk2, kk, z_points, cm_drop)
+            have_z = True
+    if not have_z:
+        z = _quadratic_peak_nb(zc, peak, k, z_points, cm_drop)
+    mp = maps[k]
+    ab = _argmax2(mp)
+    i, j = ab // n, ab % n
+    di = dj = 0.0
+    if 0 < i < n - 1:
+        di = _gauss3_nb(mp[i - 1, j], mp[i, j], mp[i + 1, j])
+    if 0 < j < n - 1:
+        dj = _gauss3_nb(mp[i, j - 1], mp[i, j], mp[i, j + 1])
+    return k, cm, z, i, j, di, dj
+
+
 def _quadratic_peak(z, c, k, n_points=None, drop: float = 0.15):
     """z of the maximum of a least-squares parabola through Cm(z) around page k.
 
@@ -743,9 +928,26 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
             out[a0:a1, b0:b1] = ncc(win, t)
         return out
 
-    maps = np.full((K, n, n), -1.0, np.float32)
     # the plain correlations of many pages in one call (not for cut images or weighted matching, page by page)
     batch = weight is None and not masked and isinstance(tmpl, Templates)
+    if batch and _MATCH_CORE and coarse and K > 4 * coarse and phi - plo > 2 * coarse:
+        # the whole coarse-to-fine match in one numba call (_match_core: the same steps as below)
+        stride = _SHIFT_STRIDE if _SHIFT_STRIDE > 1 and m >= 2 * _SHIFT_STRIDE else 1
+        flat, offs, sizes = tmpl.packed
+        zflat, tns = tmpl.zero_mean
+        lflat, loffs = layouts_upto(tmpl, 2 * m)
+        zc = calib.info.get("_z64")
+        if zc is None or zc[0] is not calib.z:
+            zc = calib.info["_z64"] = (calib.z, np.ascontiguousarray(calib.z, np.float64))
+        k, cm, z, i, j, di, dj = _match_core(padded, ri, ci, m, flat, offs, sizes, zflat, tns, lflat, loffs, K, plo,
+                                             phi, int(coarse), stride, -1 if fine_margin is None else int(fine_margin),
+                                             bool(common), _COMMON_PAGES, zc[1],
+                                             -1 if z_points is None else int(z_points), float(cm_drop))
+        h = int(sizes[k]) // 2
+        top, left = ri - h - m + i, ci - h - m + j
+        return {"x_px": left - pad + dj + calib.centers[k, 1], "y_px": top - pad + di + calib.centers[k, 0],
+                "z": z, "cm": min(cm, 1.0), "page": k, "top": int(top), "left": int(left), "di": di, "dj": dj}
+    maps = np.full((K, n, n), -1.0, np.float32)
     if coarse and K > 4 * coarse and phi - plo > 2 * coarse:
         # coarse to fine: every ``coarse``-th page first, then every page within a coarse step + 1 of the best
         # (templates interpolated between recorded pages: at the +-2 shifts around the coarse stage's best only,
@@ -1286,6 +1488,15 @@ def _joint_place(res, pad, tmpl, calib: Calibration, parts, pm, j: int, m: int, 
     return (corner[k, 0] + si + calib.centers[k, 0] - pad, corner[k, 1] + sj + calib.centers[k, 1] - pad, k)
 
 
+def _unmoved(a, b, tol=None) -> bool:
+    """Whether a re-match ``a`` of hit ``b`` left it where it was: the same page and, with ``tol`` (px; default
+    ``_SWEEP_TOL``) None, the same placement exactly, else x and y within ``tol``."""
+    tol = _SWEEP_TOL if tol is None else tol
+    if tol is None or tol < 0:
+        return all(a[key] == b[key] for key in ("page", "top", "left", "di", "dj"))
+    return a["page"] == b["page"] and abs(a["x_px"] - b["x_px"]) <= tol and abs(a["y_px"] - b["y_px"]) <= tol
+
+
 def _split(res, pad, tmpl, calib, hit, model, cap, n_parts, m, z_points, cm_drop, coarse, n_templates, gain,
            part_ok):
     """Fit one (over-bright or badly explained) match as ``n_parts`` particles of capped brightness.
@@ -1371,7 +1582,7 @@ def _split(res, pad, tmpl, calib, hit, model, cap, n_parts, m, z_points, cm_drop
                 hj = _match_one(res.img, pad, y, x, tmpl, calib, mj, z_points, cm_drop, coarse, pages=pg)
                 pm[j] = res.model(hj, cap(hj))
                 res.subtract(*pm[j])
-                same &= all(hj[key] == parts[j][key] for key in ("page", "top", "left", "di", "dj"))
+                same &= _unmoved(hj, parts[j])
                 parts[j] = hj
             if same:
                 break       # a sweep that changed no part: the next one would see the same residual
@@ -1530,7 +1741,7 @@ def _flip_branches(res, pad, tmpl, calib: Calibration, hits, models, chis, cap, 
                                         fine_margin=fm, pages=side.get(j))
                         mj = res.model(hj, cap(hj))
                         res.subtract(*mj)
-                        same &= all(hj[key] == h0[key] for key in ("page", "top", "left", "di", "dj"))
+                        same &= _unmoved(hj, h0, _FLIP_SWEEP_TOL)
                         cur[j] = (hj, mj)
                     if same:
                         break

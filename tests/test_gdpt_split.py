@@ -147,3 +147,32 @@ def test_strided_coarse_pass_finds_the_same_match(monkeypatch):
         for key in ("x_px", "y_px", "z"):
             assert got[1][key] == pytest.approx(got[2][key], abs=1e-12), (z, key)
         assert abs(got[2]["z"] - z) < 0.15e-6
+
+
+@pytest.mark.parametrize("n_sub", [1, 5])
+def test_match_core_is_the_step_by_step_match(monkeypatch, n_sub):
+    """_match_one's coarse-to-fine path in one numba call (_MATCH_CORE) returns the very same hit (values and
+    types) as the step-by-step code, for recorded and interpolated templates, strided (+-4 px) and plain (+-2 px)
+    coarse passes, a page range and two overlapping images off the pixel grid (so that Cm, z and the sub-pixel
+    offsets are not trivial)."""
+    import ptrack.calibration as C
+
+    _d, cal, _t = _shipped()
+    if n_sub > 1:
+        # interpolated templates between every 5th recorded page (coarse step n_sub, fine margin 2)
+        cal = C.Calibration(cal.templates, cal.z, cal.centers, cal.pixel_size, cal.source,
+                            dict(cal.info, n_sub=n_sub))
+    frame = _place(cal, [(40.3, 39.7, -1.2e-6, 4500.0), (47.6, 52.2, 1.7e-6, 3000.0)], (90, 90), 7.7, 3)
+    padded, pad, tmpl = C._prepare_matching(frame, cal, 1.5, 4)
+    K = len(tmpl)
+    n = 0
+    for r, c, m, pages in ((40.0, 40.0, 4, None), (41.0, 39.0, 2, None), (47.6, 52.2, 4, (K // 2, K)),
+                           (47.0, 53.0, 2, (0, K // 2)), (44.0, 46.0, 3, None)):
+        got = {}
+        for flag in (False, True):
+            monkeypatch.setattr(C, "_MATCH_CORE", flag)
+            got[flag] = C._match_one(padded, pad, r, c, tmpl, cal, m, None, 0.15, 4, pages=pages)
+        assert got[True] == got[False]
+        assert all(type(got[True][k]) is type(got[False][k]) for k in got[False])
+        n += got[True]["di"] != 0.0 or got[True]["dj"] != 0.0
+    assert n >= 2

@@ -452,6 +452,23 @@ class Templates(list):
         return self._layouts[p]
 
 
+def layouts_upto(tmpl: Templates, P: int):
+    """(lflat, loffs): the layouts :meth:`Templates.layout` of every p = 0..P in one buffer, page k's for p at
+    lflat[loffs[p, k]:loffs[p, k + 1]] (for one numba call that correlates at several window widths). Cached per
+    Templates object and P."""
+    cache = tmpl.__dict__.setdefault("_layouts_upto", {})
+    P = int(P)
+    if P not in cache:
+        parts, rows, base = [], [], 0
+        for p in range(P + 1):
+            lf, lo = tmpl.layout(p)
+            parts.append(lf)
+            rows.append(lo + base)
+            base += len(lf)
+        cache[P] = (np.concatenate(parts), np.stack(rows).astype(np.int64))
+    return cache[P]
+
+
 def ncc_pages(img, ri, ci, m, tmpl: Templates, pages, crop=0, rows=None, cols=None) -> np.ndarray:
     """Maps of :func:`ncc` of each page's template (cropped about its centre to ``crop`` px if > 0) over the
     window of ``img`` centred on pixel (ri, ci), at the (2 m + 1)^2 shifts (only those in ``rows`` x ``cols``, a
