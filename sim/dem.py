@@ -36,6 +36,7 @@ NaN/inf, a particle centre behind the substrate, a speed above ``v_max``.
 """
 from __future__ import annotations
 
+import logging
 import math
 import time
 
@@ -1538,6 +1539,44 @@ def dem_threads(scene=None, threads=None):
     return t
 
 
+def busy_cores_warning(threads, load=None, ncpu=None):
+    """Why a ``threads``-thread DEM run would be slow on this machine now, or None.
+
+    Every step of a threaded run waits at its parallel regions for the slowest thread, so a thread that
+    shares its core with another process holds the whole step (README, "DEM on 2 threads": 2-3x slower
+    than one thread beside other jobs).  ``load``: the 1-minute load average (default
+    ``os.getloadavg()``), read as the cores other processes use; ``ncpu``: the cores this process may
+    use (default its CPU affinity).
+
+    Examples
+    --------
+    >>> from sim.dem import busy_cores_warning
+    >>> busy_cores_warning(2, load=0.1, ncpu=2) is None
+    True
+    >>> busy_cores_warning(2, load=1.9, ncpu=2).startswith("load average 1.9")
+    True
+    """
+    import os
+
+    if threads <= 1:
+        return None
+    if ncpu is None:
+        ncpu = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    if threads > ncpu:
+        return (f"{threads} threads on {ncpu} core(s): threads share cores and every step waits for them; "
+                f"use --threads {ncpu} or fewer")
+    if load is None:
+        try:
+            load = os.getloadavg()[0]
+        except OSError:
+            return None
+    if load + threads > ncpu + 0.5:
+        return (f"load average {load:.1f} on {ncpu} cores: other processes hold cores, and a {threads}-thread run "
+                "waits at every step for a thread that lost its core (often slower than one thread); "
+                "use --threads 1, or run when the machine is quiet")
+    return None
+
+
 def run_dem(scene, out_dir, resume=False, progress=True, checkpoint_every=None, max_rollbacks=12, threads=None):
     """Run a scene with pair interactions; stream ``trajectories.parquet``.
 
@@ -1616,6 +1655,9 @@ def run_dem(scene, out_dir, resume=False, progress=True, checkpoint_every=None, 
         created = prepare_out_dir(out_dir)
     try:
         nthreads = dem_threads(scene, threads)
+        busy = busy_cores_warning(nthreads)
+        if busy:
+            logging.getLogger("sim.dem").warning("warning: %s", busy)
         system, st = system_from_scene(scene, sort=True, threads=nthreads)
         _check_start(system, inter)
     except UserError:

@@ -301,3 +301,13 @@ def test_openmp_spin_default_is_set_before_libgomp_loads(env, expect):
                  "print('libgomp' in open('/proc/self/maps').read())")
         assert subprocess.run([sys.executable, "-c", code2], env=e, capture_output=True, text=True,
                               check=True).stdout.split() == ["False"]
+
+
+def test_busy_cores_warning():
+    from sim.dem import busy_cores_warning
+
+    assert busy_cores_warning(1, load=8.0, ncpu=2) is None          # serial never waits for a thread
+    assert busy_cores_warning(2, load=0.2, ncpu=2) is None          # a quiet machine
+    assert busy_cores_warning(2, load=1.0, ncpu=4) is None          # two cores left free
+    assert "load average 1.2 on 2 cores" in busy_cores_warning(2, load=1.2, ncpu=2)
+    assert "use --threads 4" in busy_cores_warning(8, load=0.0, ncpu=4)
