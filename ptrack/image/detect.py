@@ -97,6 +97,16 @@ _RN_MEDIAN_STEP = 4
 _SURROUND = 2.0
 
 
+def _list_only_refcount():
+    # sys.getrefcount of an array that only a list refers to, read as take() reads it (2 on CPython <= 3.13:
+    # the list's and the argument's; an interpreter that borrows the argument's reference reports fewer)
+    probe = [np.empty(0)]
+    return sys.getrefcount(probe[0])
+
+
+_LIST_ONLY = _list_only_refcount()
+
+
 def _to_free_list(arrays):
     # the arrays onto the free list, the oldest dropped beyond _RECYCLE_BYTES
     with _FREE_LOCK:
@@ -123,8 +133,8 @@ class _Owned:
         a = None
         with _FREE_LOCK:
             for k in range(len(_FREE) - 1, -1, -1):
-                # 2 references: the list's and getrefcount's argument (a view holds one to its base)
-                if _FREE[k].shape == shape and _FREE[k].dtype == dtype and sys.getrefcount(_FREE[k]) == 2:
+                # only the list refers to it (a view holds a reference to its base)
+                if _FREE[k].shape == shape and _FREE[k].dtype == dtype and sys.getrefcount(_FREE[k]) == _LIST_ONLY:
                     a = _FREE.pop(k)
                     break
         if a is None:
