@@ -1794,6 +1794,48 @@ class _HitIndex:
         self.a[self.n] = (h["y_px"], h["x_px"], h["top"] + T / 2, h["left"] + T / 2, T, h["snr"])
         self.n += 1
 
+    def prepare(self, rr, cc, tops=None, lefts=None, sides=None):
+        """Precompute, for every candidate q (frame row rr[q], col cc[q]; with ``tops``, ``lefts``, ``sides`` its
+        template window), the distance to the nearest hit held now and the overlap SNR against them, so that
+        :meth:`nearest_q` and :meth:`overlap_q` only add the hits accepted since (the same values as
+        :meth:`nearest` and :meth:`overlap_snr`: a min or max over all hits is that over both groups)."""
+        self.n0 = self.n
+        a = self.a[:self.n0]
+        nq = len(rr)
+        if self.n0:
+            self.d0 = np.hypot(a[None, :, 0] - np.asarray(rr)[:, None], a[None, :, 1] - np.asarray(cc)[:, None]).min(1)
+        else:
+            self.d0 = np.full(nq, np.inf)
+        self.ov0 = None
+        if tops is not None:
+            self.ov0 = np.zeros(nq)
+            if self.n0:
+                T = np.asarray(sides)[:, None]
+                lim = 1.0 * (T + a[None, :, 4]) / 2
+                ov = ((np.abs(a[None, :, 2] - np.asarray(tops)[:, None] - T / 2) < lim)
+                      & (np.abs(a[None, :, 3] - np.asarray(lefts)[:, None] - T / 2) < lim))
+                self.ov0 = np.maximum(np.where(ov, a[None, :, 5], -np.inf).max(1), 0.0)
+
+    def nearest_q(self, q, y, x) -> float:
+        """:meth:`nearest` of candidate q of :meth:`prepare` (at y, x)."""
+        d = float(self.d0[q])
+        if self.n > self.n0:
+            a = self.a[self.n0:self.n]
+            d = min(d, float(np.hypot(a[:, 0] - y, a[:, 1] - x).min()))
+        return d
+
+    def overlap_q(self, q, hit) -> float:
+        """:meth:`overlap_snr` (scale 1) of candidate q of :meth:`prepare` (its window ``hit``)."""
+        v = float(self.ov0[q])
+        if self.n > self.n0:
+            a = self.a[self.n0:self.n]
+            T = self.tmpl[hit["page"]].shape[0]
+            lim = 1.0 * (T + a[:, 4]) / 2
+            ov = (np.abs(a[:, 2] - hit["top"] - T / 2) < lim) & (np.abs(a[:, 3] - hit["left"] - T / 2) < lim)
+            if ov.any():
+                v = max(v, float(max(a[ov, 5].max(), 0.0)))
+        return v
+
     def nearest(self, y, x) -> float:
         a = self.a[:self.n]
         return float(np.hypot(a[:, 0] - y, a[:, 1] - x).min()) if self.n else float("inf")
@@ -2008,8 +2050,15 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
         idx = _HitIndex(hits, tmpl)     # positions and windows of the hits, for the checks below (no loop over hits)
         bound = _snr_bound(res.img, pad, tmpl, calib, rr, cc, kk, res.noise) if rnd > 0 and hits else None
         touched = []                    # windows of the models subtracted in this round (the bound is stale there)
+        if rnd > 0 and hits:
+            c_tops = rr + pad - np.round(calib.centers[kk, 0]).astype(np.int64)
+            c_lefts = cc + pad - np.round(calib.centers[kk, 1]).astype(np.int64)
+            idx.prepare(rr, cc, c_tops, c_lefts, tmpl.packed[2][kk] if isinstance(tmpl, Templates)
+                        else np.array([tmpl[k].shape[0] for k in kk], np.int64))
+        else:
+            idx.prepare(rr, cc)
         for q, (r, c, k0) in enumerate(zip(rr, cc, kk)):
-            if hits and idx.nearest(r, c) <= 3.0:
+            if hits and idx.nearest_q(q, r, c) <= 3.0:
                 continue
             if rnd > 0 and hits:
                 # later rounds search the residual, where the leftovers of bright particles' imperfect models
@@ -2019,7 +2068,7 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
                 # threshold is at least the one below, so that check is not repeated.)
                 near = {"page": int(k0), "top": r + pad - int(round(calib.centers[k0, 0])),
                         "left": c + pad - int(round(calib.centers[k0, 1]))}
-                lim = 0.5 * max(snr_fit, snr_rel * idx.overlap_snr(near))
+                lim = 0.5 * max(snr_fit, snr_rel * idx.overlap_q(q, near))
                 if bound[q] < 0.9 * lim and not _touches(near, tmpl, touched):
                     continue        # _still_there would say no: its SNR is at most the bound, unchanged since
                 if not _still_there(res.img, pad, tmpl, calib, r, c, k0, c_candidate, lim, res.noise):

@@ -299,3 +299,35 @@ def test_stage_times_summed_in_the_calibration():
     st2 = cal.info["stage_times_s"]
     assert all(st2[s] >= st[s] for s in st) and sum(st2.values()) > sum(st.values())
     assert sum(st2.values()) <= el1 + el2 + 2e-3
+
+
+def test_hit_index_prepared_candidates_give_the_same_checks():
+    """_HitIndex.prepare (distances and overlap SNRs of all candidates against the hits at a round's start, in one
+    array operation) then nearest_q / overlap_q, with hits added after it, equal nearest / overlap_snr exactly."""
+    from ptrack.calibration import _HitIndex
+
+    rng = np.random.default_rng(5)
+    tm = [np.zeros((T, T), np.float32) for T in (9, 15, 21, 31)]
+
+    def hit():
+        return {"y_px": rng.uniform(0, 200), "x_px": rng.uniform(0, 200), "page": int(rng.integers(0, 4)),
+                "top": int(rng.integers(0, 220)), "left": int(rng.integers(0, 220)), "snr": rng.uniform(-5, 300)}
+
+    idx = _HitIndex([hit() for _ in range(12)], tm)
+    rr, cc = rng.integers(0, 200, 300), rng.integers(0, 200, 300)
+    cand = [{"page": int(k), "top": t, "left": lf} for k, t, lf in zip(rng.integers(0, 4, 300),
+                                                                         rng.integers(0, 220, 300),
+                                                                         rng.integers(0, 220, 300))]
+    idx.prepare(rr, cc, np.array([h["top"] for h in cand]), np.array([h["left"] for h in cand]),
+                np.array([tm[h["page"]].shape[0] for h in cand]))
+    n_ov = 0
+    for q in range(300):
+        if q in (100, 200):
+            idx.add(hit())
+        assert idx.nearest_q(q, rr[q], cc[q]) == idx.nearest(rr[q], cc[q])
+        assert idx.overlap_q(q, cand[q]) == idx.overlap_snr(cand[q])
+        n_ov += idx.overlap_snr(cand[q]) > 0
+    assert 30 < n_ov < 290
+    empty = _HitIndex([], tm)
+    empty.prepare(rr[:5], cc[:5])
+    assert empty.nearest_q(0, rr[0], cc[0]) == np.inf
