@@ -95,6 +95,11 @@ _RN_MEDIAN_STEP = 4
 # surround of the band-pass, in units of the scale: 2 = two rungs of the sqrt(2) ladder, so the
 # ladder's blurs serve as each other's surrounds (n + 2 blurs for n scales)
 _SURROUND = 2.0
+#: Blurs of the ladder wider than this (Gaussian sigma, px) are made on a 2x area-reduced copy (see _blur_ladder)
+_HALF_ABOVE = 3.0
+#: Sampling stride of a scale's noise map, in units of the scale (at least the ~256-samples-per-tile stride): the
+#: band-passed noise is correlated over ~ s, so samples closer than ~1.5 s add little to the MAD (0: that rule off)
+_MAP_STRIDE_S = 1.5
 
 
 def _list_only_refcount():
@@ -229,7 +234,7 @@ def _blur_ladder(work, sigmas, pool=None):
     prev, prev_s = work, 0.0
     half = None
     for i, s in enumerate(sigmas):
-        if s > 3.0 and min(H, W) >= 32:
+        if s > _HALF_ABOVE and min(H, W) >= 32:
             if half is None:
                 # the half-size arrays alternate between two of the pool's (a blur's source is not its output)
                 hbuf = [owned.take((H // 2, W // 2), prev.dtype), owned.take((H // 2, W // 2), prev.dtype)] \
@@ -898,8 +903,9 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
             # independent samples scatters by several per cent, which multiplies the false-alarm rate
             # (and, on large frames, at most ~256 tiles); ~600-1000 samples per tile fix the MAD to ~3 %
             t_side = max(int(tile), int(12 * s), int(math.sqrt(H * W / 256.0)))
-            # ~256 samples per tile and ~64k per scale (the 3x3 tile smoothing brings the MAD to ~2.5 %)
-            st = max(1, t_side // 16, int(math.sqrt(H * W / 65536.0)))
+            # ~256 samples per tile and ~64k per scale (the 3x3 tile smoothing brings the MAD to ~2.5 %), and no
+            # closer than _MAP_STRIDE_S x the scale (the band-passed noise's correlation length)
+            st = max(1, t_side // 16, int(math.sqrt(H * W / 65536.0)), int(round(_MAP_STRIDE_S * s)))
             # the band-pass has no response to a constant: its background is zero, only the noise is
             # mapped, from the sub-sampled band-passed image
             bsub = blurs[s][::st, ::st] - blurs[_SURROUND * s][::st, ::st]
