@@ -96,7 +96,7 @@ _RN_MEDIAN_STEP = 4
 # ladder's blurs serve as each other's surrounds (n + 2 blurs for n scales)
 _SURROUND = 2.0
 #: Blurs of the ladder wider than this (Gaussian sigma, px) are made on a 2x area-reduced copy (see _blur_ladder)
-_HALF_ABOVE = 3.0
+_HALF_ABOVE = 2.5
 #: Sampling stride of a scale's noise map, in units of the scale (at least the ~256-samples-per-tile stride): the
 #: band-passed noise is correlated over ~ s, so samples closer than ~1.5 s add little to the MAD (0: that rule off)
 _MAP_STRIDE_S = 1.5
@@ -199,7 +199,7 @@ def _ksize(s):
 
 def _blur_ladder(work, sigmas, pool=None):
     """G(s) * work for increasing ``sigmas``, each from the previous one (cheaper kernels); blurs wider
-    than 3 px are done on a 2x area-reduced copy and interpolated back (their content is smooth).
+    than _HALF_ABOVE (2.5 px) are done on a 2x area-reduced copy and interpolated back (their content is smooth).
 
     ``pool``: a dict (a movie's cache) whose arrays, one per output, the blurs are written into, frame after
     frame (the same values; fresh full-size arrays every frame cost the kernel's page faults, ~1 ms per
