@@ -1345,7 +1345,9 @@ def _best_in_window(resimg, pad, tmpl, calib: Calibration, r0, r1, c0, c1, n_tem
         if (tr1 - tr0 + 1) * (tc1 - tc0 + 1) <= _WINDOW_DIRECT_MAX:
             R = ncc(resimg[tr0:tr1 + T, tc0:tc1 + T], t, _WINDOW_DIRECT_MAX)     # never NaN
         else:
-            R = np.nan_to_num(cv2.matchTemplate(resimg[tr0:tr1 + T, tc0:tc1 + T], t, cv2.TM_CCOEFF_NORMED), nan=-1.0)
+            R = cv2.matchTemplate(resimg[tr0:tr1 + T, tc0:tc1 + T], t, cv2.TM_CCOEFF_NORMED)
+            if not np.isfinite(R).all():        # a constant window (padding) gives NaN
+                R = np.nan_to_num(R, nan=-1.0)
         if cmap is not None:
             a, b = tr0 + oy - pad - r0, tc0 + ox - pad - c0          # R[0, 0] is the centre (a, b) of cmap
             sub = cmap[a:a + R.shape[0], b:b + R.shape[1]]
