@@ -429,34 +429,14 @@ def _smoothed_noise(sigma: float) -> float:
     return _SMOOTH_NOISE[key]
 
 
-def _parabola_vertex(x0, x1, x2, y0, y1, y2):
-    """Vertex of the parabola through three points (x1 the middle); falls back to x1."""
-    d0, d2 = x0 - x1, x2 - x1
-    den = d0 * d2 * (d0 - d2)
-    if den == 0:
-        return x1, y1
-    a = (d2 * (y0 - y1) - d0 * (y2 - y1)) / den
-    b = (d0 * d0 * (y2 - y1) - d2 * d2 * (y0 - y1)) / den
-    if a >= 0:
-        return x1, y1
-    t = -b / (2 * a)
-    t = min(max(t, min(d0, d2)), max(d0, d2))
-    return x1 + t, y1 + b * t + a * t * t
-
-
 def _gauss3(y0, y1, y2):
     """Sub-pixel offset of a peak from three samples by a Gaussian (log-parabola) fit.
 
     Less biased towards the sample than a plain parabola for the bell-shaped
     peak of a correlation map; falls back to the parabola when a sample is
-    not positive.
+    not positive.  One rule with :func:`_match_core`'s: this calls its kernel, :func:`_gauss3_nb`.
     """
-    if y0 > 0 and y1 > 0 and y2 > 0:
-        l0, l1, l2 = math.log(y0), math.log(y1), math.log(y2)
-        den = l0 - 2 * l1 + l2
-        if den < 0:
-            return min(max(0.5 * (l0 - l2) / den, -1.0), 1.0)     # a Python float: np.clip costs ~5 us per call
-    return _parabola_vertex(-1.0, 0.0, 1.0, y0, y1, y2)[0]
+    return float(_gauss3_nb(y0, y1, y2))
 
 
 def _subpixel_peaks(maps):
@@ -508,8 +488,8 @@ def _subpixel_peaks_kernel(maps, out):
 
 @njit(cache=True)
 def _gauss3_nb(y0, y1, y2):
-    # _gauss3 of three float32 samples, the same operations: the log-parabola in double precision, the parabola
-    # fallback in float32 (as _parabola_vertex computes it on float32 samples)
+    # _gauss3's rule (the one copy of it): the log-parabola in double precision, the parabola fallback in the
+    # samples' precision (float32 for correlation maps)
     if y0 > 0 and y1 > 0 and y2 > 0:
         l0, l1, l2 = math.log(np.float64(y0)), math.log(np.float64(y1)), math.log(np.float64(y2))
         den = l0 - 2 * l1 + l2
@@ -532,7 +512,7 @@ def _gauss3_nb(y0, y1, y2):
 
 @njit(cache=True)
 def _quadratic_peak_nb(z, c, k, n_points, drop):
-    # _quadratic_peak (n_points < 0: None) on float64 arrays
+    # the window rule of _quadratic_peak (n_points < 0: None), on float64 arrays; the one copy of it
     K = len(z)
     if n_points < 0:
         miss = 1.0 - c[k]
@@ -695,23 +675,11 @@ def _quadratic_peak(z, c, k, n_points=None, drop: float = 0.15):
     sharp peak that a wide parabola would bias), narrowed while any page's
     Cm falls more than ``drop`` below the best (coarse calibration steps get
     the classic three-point vertex).
-    ``n_points`` fixes the window instead.
+    ``n_points`` fixes the window instead.  One rule with :func:`_match_core`'s: this calls its kernel,
+    :func:`_quadratic_peak_nb`, on float64 arrays.
     """
-    K = len(z)
-    if n_points is None:
-        # the noisier the match (lower Cm), the more pages are needed to average it out; at a
-        # near-perfect match the sharp Cm(z) peak is better served by few pages (less shape bias)
-        miss = 1.0 - c[k]
-        w = 1 if miss < 0.002 else (2 if miss < 0.006 else 4)
-    else:
-        w = max(1, int(n_points) // 2)
-    if n_points is None:
-        while w > 1 and c[max(0, k - w):min(K, k + w + 1)].min() < c[k] - drop:
-            w -= 1
-    lo, hi = max(0, k - w), min(K, k + w + 1)
-    if hi - lo < 3:
-        return float(z[k])
-    return _parabola_fit_vertex(np.asarray(z, np.float64), np.asarray(c, np.float64), k, lo, hi)
+    return float(_quadratic_peak_nb(np.asarray(z, np.float64), np.asarray(c, np.float64), int(k),
+                                    -1 if n_points is None else int(n_points), float(drop)))
 
 
 @njit(cache=True)
