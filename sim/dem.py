@@ -1543,8 +1543,8 @@ def busy_cores_warning(threads, load=None, ncpu=None):
     """Why a ``threads``-thread DEM run would be slow on this machine now, or None.
 
     Every step of a threaded run waits at its parallel regions for the slowest thread, so a thread that
-    shares its core with another process holds the whole step (README, "DEM on 2 threads": 2-3x slower
-    than one thread beside other jobs).  ``load``: the 1-minute load average (default
+    shares its core with another process holds the whole step, often past the time of one thread (README,
+    "DEM on 2 threads").  ``load``: the 1-minute load average (default
     ``os.getloadavg()``), read as the cores other processes use; ``ncpu``: the cores this process may
     use (default its CPU affinity).
 
