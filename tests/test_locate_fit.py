@@ -235,3 +235,44 @@ def test_written_out_gauss_newton_matrices_are_the_generic_one_bit_for_bit():
             F._ls_fisher(th, K, nr, nc, FX, FY, J0, w[10], w[11], w[13], w[14], w[15], w[16])
             fn(th, nr, nc, FX, FY, J1)
             assert np.array_equal(J0, J1)
+
+
+def test_variable_projection_evaluations_solve_the_linear_parameters_and_match_the_joint_ones():
+    # _eval_vp1 / _eval_vp2 write the photons and background minimising the RSS at the centres and width; at
+    # those, the objective, gradient (zero along the linear parameters) and Gauss-Newton matrix are the joint
+    # evaluation's (_eval_ls1 / _eval_ls2), and no other linear parameters give a smaller RSS
+    rng = np.random.default_rng(23)
+    yy, xx = np.mgrid[0:50, 0:60]
+    for K, lin in ((1, (2, 3)), (2, (2, 5, 6))):
+        for trial in range(20):
+            nr, nc = int(rng.integers(7, 20)), int(rng.integers(7, 25))
+            r0, c0 = int(rng.integers(0, 50 - nr)), int(rng.integers(0, 60 - nc))
+            th = np.zeros(3 * K + 2)
+            img = rng.normal(5.0, 4.0, (50, 60))
+            for k in range(K):
+                th[3 * k:3 * k + 3] = c0 + rng.uniform(2, nc - 2), r0 + rng.uniform(2, nr - 2), rng.uniform(500, 5000)
+                img += th[3 * k + 2] / (2 * np.pi * 1.5 ** 2) * np.exp(
+                    -((xx - th[3 * k] - 0.3) ** 2 + (yy - th[3 * k + 1]) ** 2) / (2 * 1.5 ** 2))
+            th[3 * K:] = rng.uniform(-5, 60), rng.uniform(0.9, 2.5)
+            img = img.astype(np.float32)
+            gain, offset = rng.uniform(0.5, 3.0), rng.uniform(0, 10)
+            w = F._work(K, max(nr, nc))
+            J, g = np.zeros((3 * K + 2, 3 * K + 2)), np.zeros(3 * K + 2)
+            tv = th.copy()
+            vp = F._eval_vp1 if K == 1 else F._eval_vp2
+            f, rss = vp(img, r0, nr, c0, nc, tv, gain, offset, w[0], w[1], J, g)
+            assert all(tv[a] > 0 for a in lin[:-1])
+            J0, g0 = np.zeros_like(J), np.zeros_like(g)
+            joint = F._eval_ls1 if K == 1 else F._eval_ls2
+            f0, rss0 = joint(img, r0, nr, c0, nc, tv.copy(), gain, offset, w[0], w[1], J0, g0, w[10], w[11], w[13],
+                             w[14], w[15], w[16])
+            assert abs(rss - rss0) <= 1e-9 * rss0
+            assert np.allclose(J, J0, rtol=1e-12, atol=0)
+            assert np.allclose(g, g0, rtol=1e-6, atol=1e-6 * np.abs(g0).max())
+            assert np.all(np.abs(g0[list(lin)]) < 1e-7 * np.abs(g0).max() + 1e-6 * math.sqrt(rss0))
+            for _ in range(5):      # any other photons / background: a larger RSS
+                tb = tv.copy()
+                tb[list(lin)] += rng.normal(0, 1, len(lin)) * np.r_[[50.0] * (len(lin) - 1), 1.0]
+                fb, rb = joint(img, r0, nr, c0, nc, tb, gain, offset, w[0], w[1], J0, g0, w[10], w[11], w[13],
+                               w[14], w[15], w[16])
+                assert rb > rss0

@@ -17,7 +17,13 @@ Fisher matrix together; the last step, below the tolerance, is taken
 without one), 5x5 to 17x17 systems by an in-place Cholesky, no allocation
 per spot. The least-squares path uses that the model is separable in x and
 y: its Gauss-Newton matrix comes from 1-D Gram matrices of the erf
-profiles, and the pixel loop only forms the residual's row sums.
+profiles, and the pixel loop only forms row sums. Least-squares fits of one
+and two spots solve the photons and background in closed form at every
+evaluation (variable projection: the same optimum, the steps taken on the
+centres and width), their pixel loop projecting the data on the column
+profiles; a least-squares step that reverses the last one along a line
+(Gauss-Newton overshooting on images a Gaussian does not describe exactly)
+is cut to the alternating series' sum.
 
 Pixel coordinates follow trackpy: ``x`` along columns, ``y`` along rows, the
 centre of pixel (0, 0) at (0, 0).
@@ -196,7 +202,7 @@ def _work(K, n):
     # de/ds, row 3K = 1 (the background); two (J, g) pairs (current and trial); the damped matrix, the
     # step, the trial parameters, the per-pixel derivatives (Poisson path); the 1-D Gram matrices, the
     # residual's row sums and the separable terms (coefficient, column function, row function, start of
-    # each parameter's terms) of the least-squares path
+    # each parameter's terms) of the least-squares path; the last accepted step (_lm)
     P = 3 * K + 2
     Q = 3 * K + 1
     T = 5 * K + 1
@@ -204,7 +210,7 @@ def _work(K, n):
     FY = np.ones((Q, n))
     return (FX, FY, np.zeros((P, P)), np.zeros(P), np.zeros((P, P)), np.zeros(P), np.zeros((P, P)), np.zeros(P),
             np.zeros(P), np.zeros(P), np.zeros((Q, Q)), np.zeros((Q, Q)), np.zeros(Q), np.zeros(T),
-            np.zeros(T, np.int64), np.zeros(T, np.int64), np.zeros(P + 1, np.int64))
+            np.zeros(T, np.int64), np.zeros(T, np.int64), np.zeros(P + 1, np.int64), np.zeros(P))
 
 
 @nb.njit(cache=True, inline="always")
@@ -735,6 +741,95 @@ def _eval_ls1(img, r0, nr, c0, nc, th, gain, offset, FX, FY, J, g, Gx, Gy, TC, T
 
 
 @nb.njit(cache=True)
+def _eval_vp1(img, r0, nr, c0, nc, th, gain, offset, FX, FY, J, g):
+    # variable projection for one spot (K = 1, least squares): the photons N and background b that minimise
+    # the RSS at th's centre and width, written into th[2], th[3], then -RSS/2, its gradient and the
+    # Gauss-Newton matrix there (as _eval_ls1). The model is separable, so the pixel loop forms only the
+    # data's row projections onto the column functions (d e, d de/dx, d de/ds, d) and the sum of d^2: the
+    # optimal N, b (a 2 x 2 system), the RSS and the gradient follow from those and the 1-D Gram matrices.
+    # At the optimal N, b their gradient entries are zero, so a Gauss-Newton step on the five parameters
+    # moves the centre and width by the reduced (Kaufman) step and the fit iterates on those three only.
+    _profiles(th, 1, r0, nr, c0, nc, FX, FY)
+    ey = FY[0]
+    dy = FY[1]
+    sy_ = FY[2]
+    ex = FX[0]
+    dx = FX[1]
+    sx_ = FX[2]
+    pe = 0.0        # sum d e_x e_y
+    px = 0.0        # sum d de_x e_y
+    py = 0.0        # sum d e_x de_y
+    ps = 0.0        # sum d (ds_x e_y + e_x ds_y)
+    pd = 0.0        # sum d
+    pdd = 0.0       # sum d^2
+    ig = 1.0 / gain
+    for i in range(nr):
+        q0 = 0.0
+        q1 = 0.0
+        q2 = 0.0
+        q3 = 0.0
+        q4 = 0.0
+        row = img[r0 + i]
+        for j in range(nc):
+            d = (row[c0 + j] - offset) * ig
+            q0 += d * ex[j]
+            q1 += d * dx[j]
+            q2 += d * sx_[j]
+            q3 += d
+            q4 += d * d
+        eyi = ey[i]
+        pe += q0 * eyi
+        px += q1 * eyi
+        py += q0 * dy[i]
+        ps += q2 * eyi + q0 * sy_[i]
+        pd += q3
+        pdd += q4
+    x00, x01, x02, x03, x11, x12, x13, x22, x23, x33 = _gram4(FX, nc)
+    y00, y01, y02, y03, y11, y12, y13, y22, y23, y33 = _gram4(FY, nr)
+    see = x00 * y00         # sum e^2
+    se = x03 * y03          # sum e
+    sn = x33 * y33          # pixels
+    det = see * sn - se * se
+    N = th[2]
+    b = th[3]
+    if det > 0:
+        Nv = (sn * pe - se * pd) / det
+        if Nv > 0:
+            # the optimal photons and background; where the optimum is no spot (N <= 0: a start off the
+            # image), th's own N, b are kept and the step moves all five jointly, as _eval_ls1's
+            N = Nv
+            b = (see * pd - se * pe) / det
+            th[2] = N
+            th[3] = b
+    rss = pdd - 2.0 * (N * pe + b * pd) + N * N * see + 2.0 * N * b * se + b * b * sn
+    if rss < 0.0:
+        rss = 0.0
+    # gradient of -RSS/2: sum r dmu/dth, r = d - b - N e
+    g[0] = N * (px - b * x13 * y03 - N * x01 * y00)
+    g[1] = N * (py - b * x03 * y13 - N * x00 * y01)
+    g[2] = pe - b * se - N * see
+    g[3] = pd - b * sn - N * se
+    g[4] = N * (ps - b * (x23 * y03 + x03 * y23) - N * (x02 * y00 + x00 * y02))
+    NN = N * N
+    J[0, 0] = NN * x11 * y00
+    J[0, 1] = J[1, 0] = NN * x01 * y01
+    J[0, 2] = J[2, 0] = N * x01 * y00
+    J[0, 3] = J[3, 0] = N * x13 * y03
+    J[0, 4] = J[4, 0] = NN * x12 * y00 + NN * x01 * y02
+    J[1, 1] = NN * x00 * y11
+    J[1, 2] = J[2, 1] = N * x00 * y01
+    J[1, 3] = J[3, 1] = N * x03 * y13
+    J[1, 4] = J[4, 1] = NN * x02 * y01 + NN * x00 * y12
+    J[2, 2] = see
+    J[2, 3] = J[3, 2] = se
+    J[2, 4] = J[4, 2] = N * x02 * y00 + N * x00 * y02
+    J[3, 3] = sn
+    J[3, 4] = J[4, 3] = N * x23 * y03 + N * x03 * y23
+    J[4, 4] = NN * x22 * y00 + 2.0 * NN * x02 * y02 + NN * x00 * y22
+    return -0.5 * rss, rss
+
+
+@nb.njit(cache=True)
 def _eval_ls2(img, r0, nr, c0, nc, th, gain, offset, FX, FY, J, g, Gx, Gy, TC, TA, TB, TP):
     # _eval_ls for two spots (K = 2, the joint fits of close pairs), the same operations in the same order
     # (bit-identical), with the residual's seven row sums and the eight score terms in scalars
@@ -802,9 +897,107 @@ def _eval_ls2(img, r0, nr, c0, nc, th, gain, offset, FX, FY, J, g, Gx, Gy, TC, T
     return -0.5 * rss, rss
 
 
+@nb.njit(cache=True)
+def _eval_vp2(img, r0, nr, c0, nc, th, gain, offset, FX, FY, J, g):
+    # _eval_vp1 for two spots (K = 2): the photons N0, N1 and the background b that minimise the RSS at the
+    # centres and width (a 3 x 3 system), then -RSS/2, its gradient and the Gauss-Newton matrix there (as
+    # _eval_ls2), from the data's row projections onto the seven column functions and the 1-D Gram matrices.
+    # Where the optimum has a part without photons, th's own N0, N1, b are kept (a joint step, as _eval_ls2's).
+    _profiles(th, 2, r0, nr, c0, nc, FX, FY)
+    ex0 = FX[0]
+    dx0 = FX[1]
+    sx0 = FX[2]
+    ex1 = FX[3]
+    dx1 = FX[4]
+    sx1 = FX[5]
+    pe0 = px0 = py0 = ps0 = pe1 = px1 = py1 = ps1 = pd = pdd = 0.0
+    ig = 1.0 / gain
+    for i in range(nr):
+        q0 = q1 = q2 = q3 = q4 = q5 = q6 = q7 = 0.0
+        row = img[r0 + i]
+        for j in range(nc):
+            d = (row[c0 + j] - offset) * ig
+            q0 += d * ex0[j]
+            q1 += d * dx0[j]
+            q2 += d * sx0[j]
+            q3 += d * ex1[j]
+            q4 += d * dx1[j]
+            q5 += d * sx1[j]
+            q6 += d
+            q7 += d * d
+        e0i = FY[0, i]
+        e1i = FY[3, i]
+        pe0 += q0 * e0i
+        px0 += q1 * e0i
+        py0 += q0 * FY[1, i]
+        ps0 += q2 * e0i + q0 * FY[2, i]
+        pe1 += q3 * e1i
+        px1 += q4 * e1i
+        py1 += q3 * FY[4, i]
+        ps1 += q5 * e1i + q3 * FY[5, i]
+        pd += q6
+        pdd += q7
+    (x00, x01, x02, x03, x04, x05, x06, x11, x12, x13, x14, x15, x16, x22,
+     x23, x24, x25, x26, x33, x34, x35, x36, x44, x45, x46, x55, x56, x66) = _gram7(FX, nc)
+    (y00, y01, y02, y03, y04, y05, y06, y11, y12, y13, y14, y15, y16, y22,
+     y23, y24, y25, y26, y33, y34, y35, y36, y44, y45, y46, y55, y56, y66) = _gram7(FY, nr)
+    # the linear block: sums of E0^2, E0 E1, E1^2, E0, E1, and the pixel count
+    a00 = x00 * y00
+    a01 = x03 * y03
+    a11 = x33 * y33
+    a02 = x06 * y06
+    a12 = x36 * y36
+    a22 = x66 * y66
+    N0 = th[2]
+    N1 = th[5]
+    b = th[6]
+    # the symmetric 3 x 3 system by its adjugate
+    c00 = a11 * a22 - a12 * a12
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    if det > 0:
+        c11 = a00 * a22 - a02 * a02
+        c12 = a01 * a02 - a00 * a12
+        c22 = a00 * a11 - a01 * a01
+        n0 = (c00 * pe0 + c01 * pe1 + c02 * pd) / det
+        n1 = (c01 * pe0 + c11 * pe1 + c12 * pd) / det
+        if n0 > 0 and n1 > 0:
+            N0 = n0
+            N1 = n1
+            b = (c02 * pe0 + c12 * pe1 + c22 * pd) / det
+            th[2] = N0
+            th[5] = N1
+            th[6] = b
+    rss = (pdd - 2.0 * (N0 * pe0 + N1 * pe1 + b * pd) + N0 * N0 * a00 + N1 * N1 * a11 + b * b * a22
+           + 2.0 * (N0 * N1 * a01 + N0 * b * a02 + N1 * b * a12))
+    if rss < 0.0:
+        rss = 0.0
+    # gradient of -RSS/2: sum r dmu/dth, r = d - b - N0 e0 - N1 e1 (functions 0 e0, 1 d0, 2 s0, 3 e1, 4 d1,
+    # 5 s1, 6 one)
+    g[0] = N0 * (px0 - b * x16 * y06 - N0 * x01 * y00 - N1 * x13 * y03)
+    g[1] = N0 * (py0 - b * x06 * y16 - N0 * x00 * y01 - N1 * x03 * y13)
+    g[2] = pe0 - b * a02 - N0 * a00 - N1 * a01
+    g[3] = N1 * (px1 - b * x46 * y36 - N0 * x04 * y03 - N1 * x34 * y33)
+    g[4] = N1 * (py1 - b * x36 * y46 - N0 * x03 * y04 - N1 * x33 * y34)
+    g[5] = pe1 - b * a12 - N0 * a01 - N1 * a11
+    g[6] = pd - b * a22 - N0 * a02 - N1 * a12
+    g[7] = (N0 * (ps0 - b * (x26 * y06 + x06 * y26) - N0 * (x02 * y00 + x00 * y02) - N1 * (x23 * y03 + x03 * y23))
+            + N1 * (ps1 - b * (x56 * y36 + x36 * y56) - N0 * (x05 * y03 + x03 * y05) - N1 * (x35 * y33 + x33 * y35)))
+    _ls_fisher2(th, nr, nc, FX, FY, J)
+    return -0.5 * rss, rss
+
+
 #: one-spot fits by :func:`_eval_ls1` and :func:`_eval_poisson1` (False: the generic :func:`_eval_ls` and
 #: :func:`_eval_poisson`; the same numbers)
 _LS1 = True
+#: one-spot least-squares fits by variable projection (:func:`_eval_vp1`: photons and background solved at
+#: each evaluation, the steps taken on centre and width; False: :func:`_eval_ls1`, all five jointly)
+_VARPRO = True
+#: least-squares steps that reverse the last one along a line within acos(sqrt(_OSC_COS2)) (~18 deg) are cut
+#: to the alternating series' sum (False: taken whole)
+_OSC_SUM = True
+_OSC_COS2 = 0.9
 
 
 @nb.njit(cache=True, inline="always")
@@ -813,9 +1006,13 @@ def _evaluate(img, r0, nr, c0, nc, th, K, gain, offset, rvar, poisson, w, J, g):
         if K == 1 and _LS1:
             return _eval_poisson1(img, r0, nr, c0, nc, th, gain, offset, rvar, w[0], w[1], J, g)
         return _eval_poisson(img, r0, nr, c0, nc, th, K, gain, offset, rvar, w[0], w[1], J, g, w[9])
+    if K == 1 and _VARPRO:
+        return _eval_vp1(img, r0, nr, c0, nc, th, gain, offset, w[0], w[1], J, g)
     if K == 1 and _LS1:
         return _eval_ls1(img, r0, nr, c0, nc, th, gain, offset, w[0], w[1], J, g, w[10], w[11], w[13], w[14], w[15],
                          w[16])
+    if K == 2 and _VARPRO:
+        return _eval_vp2(img, r0, nr, c0, nc, th, gain, offset, w[0], w[1], J, g)
     if K == 2 and _LS1:
         return _eval_ls2(img, r0, nr, c0, nc, th, gain, offset, w[0], w[1], J, g, w[10], w[11], w[13], w[14], w[15],
                          w[16])
@@ -840,6 +1037,8 @@ def _lm(img, r0, nr, c0, nc, th, K, sigma0, gain, offset, rvar, poisson, max_ite
     A = w[6]
     step = w[7]
     trial = w[8]
+    prev = w[17]
+    has_prev = False
     npix = nr * nc
     f, rss = _evaluate(img, r0, nr, c0, nc, th, K, gain, offset, rvar, poisson, w, J, g)
     lam = 1e-3
@@ -865,7 +1064,7 @@ def _lm(img, r0, nr, c0, nc, th, K, sigma0, gain, offset, rvar, poisson, max_ite
                 tol = max(_XTOL, _RTOL * sdmin)
         improved = False
         small = False
-        for _ in range(12):
+        for try_ in range(12):
             for a in range(P):
                 for bb in range(P):
                     A[a, bb] = J[a, bb]
@@ -874,8 +1073,32 @@ def _lm(img, r0, nr, c0, nc, th, K, sigma0, gain, offset, rvar, poisson, max_ite
                 lam *= 10.0
                 continue
             _chol_solve(A, g, step, P)
+            raw_small = True
+            for k in range(K):
+                if abs(step[3 * k]) >= tol or abs(step[3 * k + 1]) >= tol:
+                    raw_small = False
+            fct = 1.0
+            if _OSC_SUM and not poisson and try_ == 0 and has_prev:
+                # least squares of images a Gaussian does not describe exactly (halos, pairs): the Gauss-Newton
+                # steps can alternate in sign at a ratio rho near -1 (each step overshoots the optimum), which
+                # the objective accepts every time; a step that reverses the last accepted one along the same
+                # line (in the centres and width) is cut to the sum of that series, 1 / (1 - rho) of it
+                dot = 0.0
+                pp = 0.0
+                ss = 0.0
+                for a in range(P):
+                    if a % 3 != 2 and a != 3 * K:
+                        dot += step[a] * prev[a]
+                        pp += prev[a] * prev[a]
+                        ss += step[a] * step[a]
+                if pp > 0.0 and dot < 0.0 and dot * dot >= _OSC_COS2 * pp * ss:
+                    rho = dot / pp
+                    if rho > -1.0:
+                        fct = 1.0 / (1.0 - rho)
+                        for a in range(P):
+                            step[a] *= fct
             bad = False
-            small = True
+            small = raw_small
             for a in range(P):
                 trial[a] = th[a] + step[a]
             for k in range(K):
@@ -907,6 +1130,9 @@ def _lm(img, r0, nr, c0, nc, th, K, sigma0, gain, offset, rvar, poisson, max_ite
                 rss = rsst
                 lam = max(lam * 0.1, 1e-7)
                 improved = True
+                for a in range(P):
+                    prev[a] = step[a] / fct     # the Gauss-Newton step itself
+                has_prev = True
                 break
             lam *= 10.0
         if not improved or small:
