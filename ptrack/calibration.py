@@ -65,6 +65,7 @@ _SWEEP_TOL = 0.1          # _split's sweeps end after one that moved no part by 
                            # hardly ever are, so nearly every attempt ran all 3 sweeps): bench_pipeline B the same
                            # recall / precision, overlapping-image z RMSE 1.58 -> 1.56 %; ~6 % fewer matches
 _FLIP_SWEEP_TOL = 0.1     # the same for _flip_branches' sweeps
+_MODEL_SUMS = True         # _Residual.model's sums in one numba pass (_model_sums; False: NumPy, the same numbers)
 _MATCH_CORE = True        # _match_one's plain coarse-to-fine path in one numba call (_match_core; False: step by step)
 _FLIP = True               # locate_3d tries the other side of focus for badly explained overlapping images
                            # (_flip_branches): bench_pipeline B diffusion3d recall 0.952 -> 0.955, precision 0.970
@@ -1098,6 +1099,88 @@ def _shifted(t, di, dj):
                           borderValue=0.0)
 
 
+@njit(cache=True)
+def _pairwise_leaf32(a, lo, n):
+    # numpy's pairwise sum of a block of at most 128 float32s (8 accumulators)
+    if n < 8:
+        res = np.float32(0.0)
+        for i in range(lo, lo + n):
+            res += a[i]
+        return res
+    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+    i = 8
+    while i < n - (n % 8):
+        r0 += a[lo + i]
+        r1 += a[lo + i + 1]
+        r2 += a[lo + i + 2]
+        r3 += a[lo + i + 3]
+        r4 += a[lo + i + 4]
+        r5 += a[lo + i + 5]
+        r6 += a[lo + i + 6]
+        r7 += a[lo + i + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[lo + i]
+        i += 1
+    return res
+
+
+@njit(cache=True)
+def _pairwise_sum32(a, n):
+    # numpy's pairwise summation of the float32 a[:n] (numpy/_core/src/umath/loops_utils.h.src: blocks of 128,
+    # larger runs split at half rounded down to a multiple of 8, left + right): the same additions in the same
+    # order, so the same float32 as ndarray.sum() of a contiguous float32 array. Its recursion by an explicit
+    # stack (a cached self-recursive numba function crashes when loaded from the cache)
+    los = np.empty(128, np.int64)
+    ns = np.empty(128, np.int64)
+    flags = np.empty(128, np.int64)
+    vals = np.empty(128, np.float32)
+    top = 0
+    nv = 0
+    los[0], ns[0], flags[0] = 0, n, 0
+    top = 1
+    while top > 0:
+        top -= 1
+        lo, m, fl = los[top], ns[top], flags[top]
+        if m <= 128:
+            vals[nv] = _pairwise_leaf32(a, lo, m)
+            nv += 1
+        elif fl == 1:
+            vals[nv - 2] = vals[nv - 2] + vals[nv - 1]     # left + right
+            nv -= 1
+        else:
+            m2 = m // 2
+            m2 -= m2 % 8
+            los[top], ns[top], flags[top] = lo, m, 1            # combine after both halves
+            los[top + 1], ns[top + 1], flags[top + 1] = lo + m2, m - m2, 0
+            los[top + 2], ns[top + 2], flags[top + 2] = lo, m2, 0   # left first
+            top += 3
+    return vals[0]
+
+
+@njit(cache=True)
+def _model_sums(t, img, top, left):
+    """(sum t^2, sum t w, sum max(t, 0)) of a float32 template ``t`` and the window ``w`` of ``img`` at (top, left),
+    each in float32 exactly as NumPy sums the float32 products ``(t * t).sum()`` etc. (pairwise, C order)."""
+    T0, T1 = t.shape
+    n = T0 * T1
+    tt = np.empty(n, np.float32)
+    tw = np.empty(n, np.float32)
+    tp = np.empty(n, np.float32)
+    q = 0
+    for i in range(T0):
+        for j in range(T1):
+            v = t[i, j]
+            tt[q] = v * v
+            tw[q] = v * img[top + i, left + j]
+            tp[q] = v if (v >= 0 or v != v) else np.float32(0.0)       # np.maximum(v, 0.0): NaN kept
+            q += 1
+    z = np.float32(0.0)
+    return z + _pairwise_sum32(tt, n), z + _pairwise_sum32(tw, n), z + _pairwise_sum32(tp, n)
+
+
 class _Residual:
     """The smoothed, padded frame minus the template models of the particles accepted so far.
 
@@ -1130,16 +1213,22 @@ class _Residual:
         p = self.pad
         if hit["top"] >= p and hit["left"] >= p and hit["top"] + T <= Hp - p and hit["left"] + T <= Wp - p:
             tt = t              # wholly inside the frame (most hits): no masked copy
+            if _MODEL_SUMS and t.dtype == np.float32 and self.img.dtype == np.float32:
+                # the three sums below in one numba pass (numpy's float32 pairwise sums, the same numbers)
+                d32, n32, p32 = _model_sums(np.ascontiguousarray(t), self.img, int(hit["top"]), int(hit["left"]))
+                den, num, tpos = float(d32), float(n32), float(p32)
+            else:
+                den, num, tpos = float((tt * tt).sum()), float((tt * win).sum()), float(np.maximum(t, 0.0).sum())
         else:
             tt = np.where(self.inside[sl], t, 0.0)
-        den = float((tt * tt).sum())
-        a = max(float((tt * win).sum()) / den, 0.0) if den > 0 else 0.0
+            den, num, tpos = float((tt * tt).sum()), float((tt * win).sum()), float(np.maximum(t, 0.0).sum())
+        a = max(num / den, 0.0) if den > 0 else 0.0
         hit["snr"] = a * math.sqrt(den) / self.noise
         hit["amp"] = a          # brightness relative to the calibration particle (whole image, also outside the frame)
-        hit["mass"] = a * float(np.maximum(t, 0.0).sum())   # whole image, also the part outside the frame
+        hit["mass"] = a * tpos  # whole image, also the part outside the frame
         if cap is not None and a > cap:
             a = cap
-        return sl, (a * tt).astype(np.float32)
+        return sl, (a * tt).astype(np.float32, copy=False)
 
     def subtract(self, sl, mod):
         self.img[sl] -= mod

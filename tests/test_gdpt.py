@@ -331,3 +331,38 @@ def test_hit_index_prepared_candidates_give_the_same_checks():
     empty = _HitIndex([], tm)
     empty.prepare(rr[:5], cc[:5])
     assert empty.nearest_q(0, rr[0], cc[0]) == np.inf
+
+
+def test_model_sums_are_numpys_float32_sums():
+    """_model_sums (sum t^2, sum t w, sum max(t, 0) in one numba pass) gives NumPy's float32 pairwise sums exactly,
+    for blocks below, at and above numpy's 128-element pairwise block and sizes up to full-resolution templates, and
+    _Residual.model returns the same hit and model with it as with the NumPy sums."""
+    from ptrack import calibration as C
+
+    rng = np.random.default_rng(3)
+    for T in (1, 2, 7, 8, 11, 12, 16, 23, 48, 61, 150, 301):
+        t = (rng.standard_normal((T, T)) * rng.uniform(0.01, 50)).astype(np.float32)
+        img = (rng.standard_normal((T + 9, T + 13)) * 30).astype(np.float32)
+        a, b = int(rng.integers(0, 10)), int(rng.integers(0, 14))
+        w = img[a:a + T, b:b + T]
+        d, n, p = C._model_sums(t, img, a, b)
+        assert d == (t * t).sum() and n == (t * w).sum() and p == np.maximum(t, 0.0).sum()
+    tm = [(np.exp(-((np.arange(21) - 10.0) ** 2)[:, None] / 18 - ((np.arange(21) - 10.0) ** 2)[None] / 30)
+           - 0.05).astype(np.float32)]
+    padded = np.zeros((90, 90), np.float32)
+    padded[10:80, 10:80] = (rng.standard_normal((70, 70)) * 0.1).astype(np.float32)
+    padded[30:51, 33:54] += 3.0 * tm[0]
+    res = C._Residual(padded, 10, tm, 0.1)
+    old = C._MODEL_SUMS
+    try:
+        for di, dj in ((0.0, 0.0), (0.3, -0.2)):
+            out = []
+            for flag in (False, True):
+                C._MODEL_SUMS = flag
+                h = {"page": 0, "top": 30, "left": 33, "di": di, "dj": dj}
+                sl, mod = res.model(h, cap=2.0)
+                out.append((h, sl, mod))
+            assert out[0][0] == out[1][0] and out[0][1] == out[1][1] and np.array_equal(out[0][2], out[1][2])
+            assert out[0][2].dtype == out[1][2].dtype == np.float32 and out[0][0]["amp"] > 2.5
+    finally:
+        C._MODEL_SUMS = old
