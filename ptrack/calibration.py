@@ -1138,7 +1138,6 @@ def _pairwise_sum32(a, n):
     ns = np.empty(128, np.int64)
     flags = np.empty(128, np.int64)
     vals = np.empty(128, np.float32)
-    top = 0
     nv = 0
     los[0], ns[0], flags[0] = 0, n, 0
     top = 1
@@ -1212,16 +1211,14 @@ class _Residual:
         win = self.img[sl]
         Hp, Wp = self.img.shape
         p = self.pad
-        if hit["top"] >= p and hit["left"] >= p and hit["top"] + T <= Hp - p and hit["left"] + T <= Wp - p:
-            tt = t              # wholly inside the frame (most hits): no masked copy
-            if _MODEL_SUMS and t.dtype == np.float32 and self.img.dtype == np.float32:
-                # the three sums below in one numba pass (numpy's float32 pairwise sums, the same numbers)
-                d32, n32, p32 = _model_sums(np.ascontiguousarray(t), self.img, int(hit["top"]), int(hit["left"]))
-                den, num, tpos = float(d32), float(n32), float(p32)
-            else:
-                den, num, tpos = float((tt * tt).sum()), float((tt * win).sum()), float(np.maximum(t, 0.0).sum())
+        inside = hit["top"] >= p and hit["left"] >= p and hit["top"] + T <= Hp - p and hit["left"] + T <= Wp - p
+        # wholly inside the frame (most hits): no masked copy
+        tt = t if inside else np.where(self.inside[sl], t, 0.0)
+        if inside and _MODEL_SUMS and t.dtype == np.float32 and self.img.dtype == np.float32:
+            # the three sums below in one numba pass (numpy's float32 pairwise sums, the same numbers)
+            d32, n32, p32 = _model_sums(np.ascontiguousarray(t), self.img, int(hit["top"]), int(hit["left"]))
+            den, num, tpos = float(d32), float(n32), float(p32)
         else:
-            tt = np.where(self.inside[sl], t, 0.0)
             den, num, tpos = float((tt * tt).sum()), float((tt * win).sum()), float(np.maximum(t, 0.0).sum())
         a = max(num / den, 0.0) if den > 0 else 0.0
         hit["snr"] = a * math.sqrt(den) / self.noise

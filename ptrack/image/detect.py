@@ -165,12 +165,12 @@ def scratch(cache, name, shape, dtype):
     """A work array of a movie's cache (:func:`detect`'s), kept from frame to frame under ``name``: overwritten
     in full by every use and read only within one call (not returned), so a movie's frames allocate no fresh
     full-size temporaries (on a VM each 4 kB page of a fresh array costs ~3 us of page fault; a 640 x 424 frame
-    had ~4 such arrays, ~1000 faults per 5 frames). ``None`` without a cache (or before :func:`detect` made
-    its pool): then the caller allocates as usual."""
+    had ~4 such arrays, ~1000 faults per 5 frames). A fresh array without a cache (or before :func:`detect` made
+    its pool)."""
     pool = cache.get("blur_pool") if cache is not None else None
     owned = pool.get("owned") if pool is not None else None
     if owned is None:
-        return None
+        return np.empty(shape, dtype)
     shape, dtype = tuple(int(n) for n in shape), np.dtype(dtype)
     arrays = pool.setdefault("scratch", {})
     a = arrays.get(name)
@@ -236,22 +236,19 @@ def _blur_ladder(work, sigmas, pool=None):
     for i, s in enumerate(sigmas):
         if s > _HALF_ABOVE and min(H, W) >= 32:
             if half is None:
-                # the half-size arrays alternate between two of the pool's (a blur's source is not its output)
-                hbuf = [owned.take((H // 2, W // 2), prev.dtype), owned.take((H // 2, W // 2), prev.dtype)] \
-                    if owned is not None and pool.get("half") is None else pool.get("half") if owned is not None \
-                    else None
-                if hbuf is not None:
-                    pool["half"] = hbuf
+                # the half-size arrays alternate between two of the pool's (a blur's source is not its output);
+                # without an owner cv2 allocates (dst None)
+                hbuf = [None, None]
+                if owned is not None:
+                    if pool.get("half") is None:
+                        pool["half"] = [owned.take((H // 2, W // 2), prev.dtype) for _ in range(2)]
+                    hbuf = pool["half"]
                 hi = 0
-                half = cv2.resize(prev, (W // 2, H // 2), interpolation=cv2.INTER_AREA) if hbuf is None else \
-                    cv2.resize(prev, (W // 2, H // 2), dst=hbuf[0], interpolation=cv2.INTER_AREA)
+                half = cv2.resize(prev, (W // 2, H // 2), dst=hbuf[0], interpolation=cv2.INTER_AREA)
                 half_s = math.sqrt(prev_s ** 2 + 0.25)      # area reduction ~ a 0.5 px blur at full scale
             ds = math.sqrt(max(s * s - half_s * half_s, 0.01)) / 2.0
-            if hbuf is None:
-                half = cv2.GaussianBlur(half, _ksize(ds), ds, borderType=cv2.BORDER_REFLECT)
-            else:
-                hi = 1 - hi
-                half = cv2.GaussianBlur(half, _ksize(ds), ds, dst=hbuf[hi], borderType=cv2.BORDER_REFLECT)
+            hi = 1 - hi
+            half = cv2.GaussianBlur(half, _ksize(ds), ds, dst=hbuf[hi], borderType=cv2.BORDER_REFLECT)
             half_s = s
             out.append(into(i, 0, cv2.resize, half, (W, H), interpolation=cv2.INTER_LINEAR))
             continue
@@ -860,29 +857,19 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
     # (with a cache, into its scratch arrays: the same values as ascontiguousarray's and astype's conversions)
     f32 = np.ascontiguousarray(frame) if frame.dtype == np.float32 else None
     if f32 is None or f32 is not frame:
-        buf = scratch(cache, "f32", np.shape(frame), np.float32)
-        if buf is None:
-            f32 = np.ascontiguousarray(frame, np.float32)
-        else:
-            np.copyto(buf, frame, casting="unsafe")
-            f32 = buf
+        f32 = scratch(cache, "f32", np.shape(frame), np.float32)
+        np.copyto(f32, frame, casting="unsafe")
     work = f32
     if median:
         # the 3x3 median of 8/16-bit frames by cv2's integer kernel (2x faster than its float32 one), then
         # float32: the same values (a median selects one of its nine, and the integers are exact in float32)
         native = frame.dtype in (np.uint8, np.uint16) and frame.ndim == 2
         if native:
-            mbuf = scratch(cache, "median", frame.shape, frame.dtype)
-            m8 = cv2.medianBlur(np.ascontiguousarray(frame), 3) if mbuf is None else \
-                cv2.medianBlur(np.ascontiguousarray(frame), 3, dst=mbuf)
+            m8 = cv2.medianBlur(np.ascontiguousarray(frame), 3, dst=scratch(cache, "median", frame.shape, frame.dtype))
             work = scratch(cache, "work", frame.shape, np.float32)
-            if work is None:
-                work = m8.astype(np.float32)
-            else:
-                np.copyto(work, m8)
+            np.copyto(work, m8)
         else:
-            buf = scratch(cache, "work", f32.shape, np.float32)
-            work = cv2.medianBlur(f32, 3) if buf is None else cv2.medianBlur(f32, 3, dst=buf)
+            work = cv2.medianBlur(f32, 3, dst=scratch(cache, "work", f32.shape, np.float32))
     H, W = work.shape
     ladder = sorted(set(scales) | {_SURROUND * x for x in scales})
     # (with a cache, into the arrays of the previous frame: nothing keeps the blurs beyond this call)
@@ -967,7 +954,6 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         # sign too, from the same pass (the polarity vote)
         n = (H, W) if both else (1, 1)       # the other sign's map: unused without `both`
         out = [scratch(cache, "best", (H, W), np.float32), scratch(cache, "best_other", n, np.float32)]
-        out = [np.empty(sh, np.float32) if a is None else a for a, sh in zip(out, ((H, W), n))]
         if ivs is not None:
             _best_over_scales(b1s, b2s, ivs, 0, float(sign), *out, both)
         else:
