@@ -379,6 +379,91 @@ def _tile_med_mad(sub, nh, nw, th, tw):
     return med, mad
 
 
+@nb.njit(cache=True)
+def _gather_tiles(sub, nh, nw, th, tw, out, negz):
+    # tile (a, b) of sub (th x tw px, raster order) into row a nw + b of out, shape (nh nw, th tw), and the
+    # number of its -0.0 values into negz[a nw + b]
+    for a in range(nh):
+        for b in range(nw):
+            o = out[a * nw + b]
+            k = 0
+            nz = 0
+            for i in range(a * th, (a + 1) * th):
+                for j in range(b * tw, (b + 1) * tw):
+                    v = sub[i, j]
+                    o[k] = v
+                    if v == 0 and math.copysign(1.0, v) < 0:
+                        nz += 1
+                    k += 1
+            negz[a * nw + b] = nz
+
+
+@nb.njit(cache=True)
+def _sorted_med_mad(tiles, negz, nh, nw, med, mad):
+    """:func:`_tile_med_mad` from tiles already sorted in ascending order, one per row of ``tiles`` (shape
+    (nh nw, n), float32; numpy's sort, which puts NaN last and may swap the signs of zeros: its vectorised
+    min/max return either of -0.0 and +0.0), ``negz`` the number of -0.0 values of each tile before the sort.
+
+    ``med``, ``mad`` (float32, shape (nh, nw), unit of the tiles) are filled with :func:`_tile_med_mad`'s
+    values bit for bit: the run of zeros is rewritten in the radix sort's order (the tile's -0.0 first)
+    before it is read.
+    Returns False (and stops) at a tile holding a NaN: the radix sort orders NaNs by their sign bit, numpy's
+    puts them last (the caller then uses :func:`_tile_med_mad`).
+    """
+    n = tiles.shape[1]
+    h = n >> 1
+    for a in range(nh):
+        for b in range(nw):
+            s = tiles[a * nw + b]
+            if math.isnan(s[n - 1]):
+                return False
+            # the zeros (a contiguous run: -0.0 == +0.0) in the radix order: the negative ones first
+            lo = 0
+            hi = n
+            while lo < hi:
+                t = (lo + hi) >> 1
+                if s[t] < 0:
+                    lo = t + 1
+                else:
+                    hi = t
+            if lo < n and s[lo] == 0:
+                e = lo
+                while e < n and s[e] == 0:
+                    e += 1
+                neg = negz[a * nw + b]
+                for t in range(lo, e):
+                    s[t] = np.float32(-0.0) if t < lo + neg else np.float32(0.0)
+            if n & 1:
+                m = s[h]
+                dev = _dev_pair(s, n, h, m, h)[0]
+            else:
+                m = np.float32((np.float64(s[h - 1]) + np.float64(s[h])) / 2)
+                d0, d1 = _dev_pair(s, n, h, m, h - 1)
+                dev = (d0 + d1) / 2
+            med[a, b] = m
+            mad[a, b] = np.float32(1.4826 * dev)
+    return True
+
+
+#: tile medians and MADs from numpy's (vectorised) sort of the gathered tiles (False: :func:`_tile_med_mad`'s
+#: radix sort in numba, ~4x the time on AVX2); the same values bit for bit
+_NP_SORT = True
+
+
+def _tile_stats(sub, nh, nw, th, tw):
+    """:func:`_tile_med_mad`'s median and 1.4826 MAD of each ``th x tw`` tile of the float32 ``sub``."""
+    if _NP_SORT and th * tw > 1:
+        tiles = np.empty((nh * nw, th * tw), np.float32)
+        negz = np.empty(nh * nw, np.int64)
+        _gather_tiles(sub, nh, nw, th, tw, tiles, negz)
+        tiles.sort(axis=1)
+        med = np.empty((nh, nw), np.float32)
+        mad = np.empty((nh, nw), np.float32)
+        if _sorted_med_mad(tiles, negz, nh, nw, med, mad):
+            return med, mad
+    return _tile_med_mad(sub, nh, nw, th, tw)
+
+
 def noise_maps(img, tile: int = 64, step: int = 2, what: str = "both", shape=None, out=None):
     """Local background (median) and noise (1.4826 MAD) of an image over tiles, interpolated to full size.
 
@@ -416,7 +501,7 @@ def noise_maps(img, tile: int = 64, step: int = 2, what: str = "both", shape=Non
     # tiles of the sub-sampled image: the remainder rows/columns join the last tile's statistics by
     # the interpolation (they are within one tile of it)
     th, tw = max(1, (H // nh) // step), max(1, (W // nw) // step)
-    med, mad = _tile_med_mad(np.ascontiguousarray(sub[:nh * th, :nw * tw], np.float32), nh, nw, th, tw)
+    med, mad = _tile_stats(np.ascontiguousarray(sub[:nh * th, :nw * tw], np.float32), nh, nw, th, tw)
     # a tile of constant values (saturated, padded) has MAD 0: borrow the frame's typical noise
     if nh >= 3 and nw >= 3:
         # neighbouring tiles share the noise level: a 3x3 mean over the tile grid cuts the MAD's
