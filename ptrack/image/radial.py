@@ -277,7 +277,27 @@ def _profile_one(img, r, c, half, x0, y0, n2, gw, out):
                 m = 0.0
                 dp = 0.0
                 nz = 0
-                for jj in range(k0, k0 + 4):
+                # (the usual case, full: rho >= 1, so no mirrored knot, and all four coefficients k0..k0 + 3
+                # inside the profile and nonzero, the four B-splines evaluated and summed as the loop below does;
+                # else that loop, which folds the mirrored knots)
+                full = False
+                if k0 >= 0 and k0 + 3 < K:
+                    v0, d0 = _bspline(rho - k0)
+                    v1, d1 = _bspline(rho - (k0 + 1))
+                    v2, d2 = _bspline(rho - (k0 + 2))
+                    v3, d3 = _bspline(rho - (k0 + 3))
+                    full = not ((v0 == 0.0 and d0 == 0.0) or (v1 == 0.0 and d1 == 0.0) or
+                                (v2 == 0.0 and d2 == 0.0) or (v3 == 0.0 and d3 == 0.0))
+                if full:
+                    m += theta[k0] * v0
+                    dp += theta[k0] * d0
+                    m += theta[k0 + 1] * v1
+                    dp += theta[k0 + 1] * d1
+                    m += theta[k0 + 2] * v2
+                    dp += theta[k0 + 2] * d2
+                    m += theta[k0 + 3] * v3
+                    dp += theta[k0 + 3] * d3
+                for jj in range(k0, k0 + 4 if not full else k0):
                     v, d = _bspline(rho - jj)
                     kk = abs(jj)
                     if kk >= K or (v == 0.0 and d == 0.0):
@@ -330,6 +350,54 @@ def _profile_one(img, r, c, half, x0, y0, n2, gw, out):
                 w1 = l1 * wt
                 w2 = l2 * wt
                 w3 = l3 * wt
+                if full:
+                    # the same sums as the loop below, unrolled over the four consecutive coefficients
+                    a0 = A[k0]
+                    a1 = A[k0 + 1]
+                    a2 = A[k0 + 2]
+                    a3 = A[k0 + 3]
+                    rhs[k0, 0] += v0 * res
+                    rhs[k0 + 1, 0] += v1 * res
+                    rhs[k0 + 2, 0] += v2 * res
+                    rhs[k0 + 3, 0] += v3 * res
+                    vp0 = v0 * wt
+                    vp1 = v1 * wt
+                    vp2 = v2 * wt
+                    vp3 = v3 * wt
+                    a0[k0] += vp0 * v0
+                    a1[k0] += vp1 * v0
+                    a1[k0 + 1] += vp1 * v1
+                    a2[k0] += vp2 * v0
+                    a2[k0 + 1] += vp2 * v1
+                    a2[k0 + 2] += vp2 * v2
+                    a3[k0] += vp3 * v0
+                    a3[k0 + 1] += vp3 * v1
+                    a3[k0 + 2] += vp3 * v2
+                    a3[k0 + 3] += vp3 * v3
+                    a0[K] += w0 * v0
+                    a0[K + 1] += w1 * v0
+                    a0[K + 2] += w2 * v0
+                    a0[K + 3] += w3 * v0
+                    a0[IX] += vp0 * ddx
+                    a0[IY] += vp0 * ddy
+                    a1[K] += w0 * v1
+                    a1[K + 1] += w1 * v1
+                    a1[K + 2] += w2 * v1
+                    a1[K + 3] += w3 * v1
+                    a1[IX] += vp1 * ddx
+                    a1[IY] += vp1 * ddy
+                    a2[K] += w0 * v2
+                    a2[K + 1] += w1 * v2
+                    a2[K + 2] += w2 * v2
+                    a2[K + 3] += w3 * v2
+                    a2[IX] += vp2 * ddx
+                    a2[IY] += vp2 * ddy
+                    a3[K] += w0 * v3
+                    a3[K + 1] += w1 * v3
+                    a3[K + 2] += w2 * v3
+                    a3[K + 3] += w3 * v3
+                    a3[IX] += vp3 * ddx
+                    a3[IY] += vp3 * ddy
                 for p in range(nz):
                     ip = idx[p]
                     v = val[p]
