@@ -67,6 +67,10 @@ _SWEEP_TOL = 0.1          # _split's sweeps end after one that moved no part by 
                            # recall / precision, overlapping-image z RMSE 1.58 -> 1.56 %; ~6 % fewer matches
 _FLIP_SWEEP_TOL = 0.1     # the same for _flip_branches' sweeps
 _MODEL_SUMS = True         # _Residual.model's sums in one numba pass (_model_sums; False: NumPy, the same numbers)
+_COARSE_EVERY = 2         # _match_one's coarse stage first scores every 2nd of its pages (and the last one), then the
+                           # pages between those scoring within _COARSE_DELTA of the best (1: every page at once; 1 or
+                           # 2 only: with 2 both neighbours of the coarse best are always scored)
+_COARSE_DELTA = 0.1       # (correlation units)
 _MATCH_CORE = True        # _match_one's plain coarse-to-fine path in one numba call (_match_core; False: step by step)
 _FLIP = True               # locate_3d tries the other side of focus for badly explained overlapping images
                            # (_flip_branches): bench_pipeline B diffusion3d recall 0.952 -> 0.955, precision 0.970
@@ -554,10 +558,40 @@ def _peaks_of(maps, pages):
 
 
 @njit(cache=True)
+def _coarse_first(P, every):
+    # indices of the coarse pages scored first: every ``every``-th one and the last one
+    ev = np.zeros(P, np.bool_)
+    for q in range(0, P, max(every, 1)):
+        ev[q] = True
+    if P:
+        ev[P - 1] = True
+    return np.flatnonzero(ev)
+
+
+@njit(cache=True)
+def _coarse_fill(s, every, delta):
+    # the coarse pages not scored yet (s = -inf) within every - 1 of a scored one that scores within delta of the
+    # best: where the coarse best may lie between the samples
+    P = len(s)
+    b = -np.inf
+    for q in range(P):
+        if s[q] > b:
+            b = s[q]
+    add = np.zeros(P, np.bool_)
+    for q in range(P):
+        if s[q] != -np.inf and s[q] >= b - delta:
+            for d in range(1 - every, every):
+                if 0 <= q + d < P and s[q + d] == -np.inf:
+                    add[q + d] = True
+    return np.flatnonzero(add)
+
+
+@njit(cache=True)
 def _match_core(img, ri, ci, m, flat, offs, sizes, zflat, tns, lflat, loffs, K, plo, phi, coarse, stride, fine_margin,
-                common, cpages, zc, z_points, cm_drop):
+                common, cpages, zc, z_points, cm_drop, every, delta):
     # _match_one's batch coarse-to-fine path in one call, the same correlations (gdpt.ncc kernels, same windows and
-    # shift ranges) and the same selection: (page, cm, z, i, j, di, dj). fine_margin, z_points < 0: None
+    # shift ranges) and the same selection: (page, cm, z, i, j, di, dj). fine_margin, z_points < 0: None. The
+    # coarse pages scored in two steps (_coarse_first, _coarse_fill; every, delta: _COARSE_EVERY, _COARSE_DELTA)
     n = 2 * m + 1
     maps = np.full((K, n, n), -1.0, np.float32)
     f0 = -(-plo // coarse) * coarse
@@ -566,9 +600,20 @@ def _match_core(img, ri, ci, m, flat, offs, sizes, zflat, tns, lflat, loffs, K, 
     if stride > 1:
         nc = (2 * m) // stride + 1
         cmaps = np.empty((P, nc, nc), np.float32)
-        _ncc_pages_strided(img, ri, ci, m, offs, sizes, zflat, tns, lflat, loffs[2 * m], first, stride, cmaps)
-        pk = np.empty(P)
-        _subpixel_peaks_kernel(cmaps, pk)
+        pk = np.full(P, -np.inf)
+        qs = _coarse_first(P, every)
+        for step_ in range(2):
+            if step_:
+                qs = _coarse_fill(pk, every, delta)
+            if len(qs) == 0:
+                continue
+            tmp = np.empty((len(qs), nc, nc), np.float32)
+            _ncc_pages_strided(img, ri, ci, m, offs, sizes, zflat, tns, lflat, loffs[2 * m], first[qs], stride, tmp)
+            pq = np.empty(len(qs))
+            _subpixel_peaks_kernel(tmp, pq)
+            for u in range(len(qs)):
+                cmaps[qs[u]] = tmp[u]
+                pk[qs[u]] = pq[u]
         q = int(np.argmax(pk))
         best = first[q]
         ab = _argmax2(cmaps[q])
@@ -584,15 +629,24 @@ def _match_core(img, ri, ci, m, flat, offs, sizes, zflat, tns, lflat, loffs, K, 
         for q in range(len(done)):
             maps[done[q]] = tmp[q]
     else:
-        fm = np.empty((P, n, n), np.float32)
-        _ncc_pages(img, ri, ci, m, flat, offs, sizes, zflat, tns, lflat, loffs[n - 1], first, 0, 0, n, 0, n, fm)
+        sc = np.full(P, -np.inf)
+        qs = _coarse_first(P, every)
+        for step_ in range(2):
+            if step_:
+                qs = _coarse_fill(sc, every, delta)
+            if len(qs) == 0:
+                continue
+            fm = np.empty((len(qs), n, n), np.float32)
+            _ncc_pages(img, ri, ci, m, flat, offs, sizes, zflat, tns, lflat, loffs[n - 1], first[qs], 0, 0, n, 0, n,
+                       fm)
+            for u in range(len(qs)):
+                maps[first[qs[u]]] = fm[u]
+                sc[qs[u]] = fm[u].max()
         bq = 0
-        bv = fm[0].max()
-        for q in range(P):
-            maps[first[q]] = fm[q]
-            v = fm[q].max()
-            if v > bv:
-                bv = v
+        bv = -np.inf
+        for q in range(P):      # the first of the best (as np.argmax of the maps' maxima)
+            if sc[q] > bv:
+                bv = sc[q]
                 bq = q
         best = first[bq]
         lo, hi = max(plo, best - coarse - 1), min(phi, best + coarse + 2)
@@ -622,7 +676,8 @@ def _match_core(img, ri, ci, m, flat, offs, sizes, zflat, tns, lflat, loffs, K, 
                 maps[ks[q]] = tmp[q]
         sel = np.zeros(K, np.bool_)
         for q in range(P):
-            sel[first[q]] = True
+            if sc[q] != -np.inf:
+                sel[first[q]] = True
         sel[lo:hi] = True
         done = np.flatnonzero(sel)
     peak = np.full(K, -1.0)
@@ -915,7 +970,8 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
         k, cm, z, i, j, di, dj = _match_core(padded, ri, ci, m, flat, offs, sizes, zflat, tns, lflat, loffs, K, plo,
                                              phi, int(coarse), stride, -1 if fine_margin is None else int(fine_margin),
                                              bool(common), _COMMON_PAGES, zc[1],
-                                             -1 if z_points is None else int(z_points), float(cm_drop))
+                                             -1 if z_points is None else int(z_points), float(cm_drop),
+                                             int(_COARSE_EVERY), float(_COARSE_DELTA))
         h = int(sizes[k]) // 2
         top, left = ri - h - m + i, ci - h - m + j
         return {"x_px": left - pad + dj + calib.centers[k, 1], "y_px": top - pad + di + calib.centers[k, 0],
@@ -935,8 +991,17 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
             # ``fine_margin`` of that page's best sample, and at least ``stride``); only those pages compete for the
             # best page (recorded pages at +-2 px of the best sample instead of every shift: diffusion3d
             # overlapping-image z RMSE 1.59 -> 2.62 %)
-            cmaps = ncc_pages_strided(padded, ri, ci, m, tmpl, first, stride)
-            q = int(np.argmax(_subpixel_peaks(cmaps)))
+            nc = (2 * m) // stride + 1
+            cmaps = np.empty((len(first), nc, nc), np.float32)
+            pk = np.full(len(first), -np.inf)
+            qs = _coarse_first(len(first), _COARSE_EVERY)
+            for step_ in range(2):
+                if step_:
+                    qs = _coarse_fill(pk, _COARSE_EVERY, _COARSE_DELTA)
+                if len(qs):
+                    cmaps[qs] = ncc_pages_strided(padded, ri, ci, m, tmpl, first[qs], stride)
+                    pk[qs] = _subpixel_peaks(cmaps[qs])
+            q = int(np.argmax(pk))
             best = int(first[q])
             a, b = divmod(int(np.argmax(cmaps[q])), cmaps.shape[2])      # (divmod: np.unravel_index ~4 us)
             i0, j0 = a * stride, b * stride
@@ -946,15 +1011,22 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
             maps[done] = ncc_pages(padded, ri, ci, m, tmpl, done, rows=(max(i0 - fw, 0), min(i0 + fw, n - 1) + 1),
                                    cols=(max(j0 - fw, 0), min(j0 + fw, n - 1) + 1))
         else:
-            if batch:
-                fm_ = ncc_pages(padded, ri, ci, m, tmpl, first)
-                maps[first] = fm_
-            else:
-                for k in first:
-                    maps[k] = corr(k)
-                np.copyto(maps, -1.0, where=np.isnan(maps))    # a constant window (padding) gives NaN (OpenCV)
-                fm_ = maps[first]
-            best = int(first[np.argmax(fm_.reshape(len(first), -1).max(1))])
+            # (the coarse pages scored in two steps, as _match_core: _coarse_first, then _coarse_fill)
+            sc = np.full(len(first), -np.inf)
+            qs = _coarse_first(len(first), _COARSE_EVERY)
+            for step_ in range(2):
+                if step_:
+                    qs = _coarse_fill(sc, _COARSE_EVERY, _COARSE_DELTA)
+                if not len(qs):
+                    continue
+                if batch:
+                    maps[first[qs]] = ncc_pages(padded, ri, ci, m, tmpl, first[qs])
+                else:
+                    for k in first[qs]:
+                        maps[k] = corr(k)
+                    np.copyto(maps, -1.0, where=np.isnan(maps))    # a constant window (padding) gives NaN (OpenCV)
+                sc[qs] = maps[first[qs]].reshape(len(qs), -1).max(1)
+            best = int(first[np.argmax(sc)])
             lo, hi = max(plo, best - coarse - 1), min(phi, best + coarse + 2)
             i0, j0 = divmod(int(np.argmax(maps[best])), n)
             near = fine_margin is not None and not masked and m > fine_margin
@@ -969,7 +1041,7 @@ def _match_one(padded, pad, r, c, tmpl, calib: Calibration, m: int, z_points, cm
                 np.copyto(maps, -1.0, where=np.isnan(maps))
             # the pages correlated (sorted; np.union1d costs ~100 us a match)
             sel = np.zeros(K, bool)
-            sel[first] = True
+            sel[first[sc != -np.inf]] = True
             sel[lo:hi] = True
             done = np.flatnonzero(sel)
     else:

@@ -176,3 +176,25 @@ def test_match_core_is_the_step_by_step_match(monkeypatch, n_sub):
         assert all(type(got[True][k]) is type(got[False][k]) for k in got[False])
         n += got[True]["di"] != 0.0 or got[True]["dj"] != 0.0
     assert n >= 2
+
+
+def test_coarse_pages_scored_in_two_steps(monkeypatch):
+    """The coarse stage scores every 2nd page first, then the pages between samples within _COARSE_DELTA of the
+    best (both neighbours of the best always): on two overlapping images it picks the hit of scoring every page."""
+    import numpy as np
+
+    import ptrack.calibration as C
+
+    assert list(C._coarse_first(7, 2)) == [0, 2, 4, 6] and list(C._coarse_first(6, 2)) == [0, 2, 4, 5]
+    s = np.array([0.5, -np.inf, 0.9, -np.inf, 0.85, -np.inf, 0.3])
+    assert list(C._coarse_fill(s, 2, 0.1)) == [1, 3, 5]
+    assert list(C._coarse_fill(s, 2, 0.01)) == [1, 3]
+    _d, cal, _t = _shipped()
+    frame = _place(cal, [(40.3, 39.7, -1.2e-6, 4500.0), (47.6, 52.2, 1.7e-6, 3000.0)], (90, 90), 7.7, 3)
+    padded, pad, tmpl = C._prepare_matching(frame, cal, 1.5, 4)
+    for r, c, m in ((40.0, 40.0, 4), (41.0, 39.0, 2), (47.6, 52.2, 4)):
+        got = {}
+        for every in (1, 2):
+            monkeypatch.setattr(C, "_COARSE_EVERY", every)
+            got[every] = C._match_one(padded, pad, r, c, tmpl, cal, m, None, 0.15, 4)
+        assert got[1] == got[2]
