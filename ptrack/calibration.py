@@ -32,8 +32,8 @@ import pandas as pd
 from numba import njit
 
 from .errors import UserError, check_positive, require_file
-from .gdpt.ncc import (FrameSpectrum, Templates, _ncc_pages, _ncc_pages_strided, layouts_upto, ncc, ncc_pages,
-                       ncc_pages_strided)
+from .gdpt.ncc import (FrameSpectrum, Templates, _ncc_map, _ncc_pages, _ncc_pages_strided, _window_sums,
+                       layouts_upto, ncc, ncc_pages, ncc_pages_strided)
 
 _COMMON_WINDOW = True     # compare the pages around the best one on one window (see _match_one)
 _COMMON_PAGES = 2         # pages either side of the best one (4: diffusion3d a little better, a close pair worse)
@@ -72,6 +72,7 @@ _COARSE_EVERY = 2         # _match_one's coarse stage first scores every 2nd of 
                            # 2 only: with 2 both neighbours of the coarse best are always scored)
 _COARSE_DELTA = 0.1       # (correlation units)
 _MATCH_CORE = True        # _match_one's plain coarse-to-fine path in one numba call (_match_core; False: step by step)
+_STILL_CORE = True        # _still_there in one numba call (_still_core; False: NumPy step by step, the same answers)
 _FLIP = True               # locate_3d tries the other side of focus for badly explained overlapping images
                            # (_flip_branches): bench_pipeline B diffusion3d recall 0.952 -> 0.955, precision 0.970
                            # -> 0.972, overlapping-image z RMSE 2.06 -> 1.59 % of the depth
@@ -1366,6 +1367,89 @@ def _still_there(resimg, pad, tmpl, calib: Calibration, r, c, k, c_min: float, s
     the found position, 3 x 3 shifts) and its least-squares amplitude
     decide, instead of a full match against every page.
     """
+    if _STILL_CORE and isinstance(tmpl, Templates) and resimg.dtype == np.float32 and tmpl[k].dtype == np.float32:
+        flat, offs, sizes = tmpl.packed
+        zflat, tns = tmpl.zero_mean
+        lflat, loffs = tmpl.layout(2)
+        v = _still_core(resimg, int(pad), int(r), int(c), int(k), _center_px(calib), flat, offs, sizes, zflat, tns,
+                        lflat, loffs, _template_dots(tmpl), float(c_min), float(snr_min), float(noise))
+        if v < 2:
+            return v == 1
+    return _still_steps(resimg, pad, tmpl, calib, r, c, k, c_min, snr_min, noise)
+
+
+def _center_px(calib: Calibration) -> np.ndarray:
+    """(K, 2) int64: each page's particle centre inside its template rounded to a pixel (row, col), as
+    ``int(round(calib.centers[k, i]))``; cached in ``calib.info``."""
+    hit = calib.info.get("_center_px")
+    if hit is None or hit[0] is not calib.centers:
+        px = np.array([[int(round(float(y))), int(round(float(x)))] for y, x in calib.centers], np.int64).reshape(-1, 2)
+        hit = calib.info["_center_px"] = (calib.centers, px)
+    return hit[1]
+
+
+def _template_dots(tmpl: Templates) -> np.ndarray:
+    """Each template's sum of squares as :func:`_still_steps` forms it (``float(np.dot(t.ravel(), t.ravel()))``, a
+    float32 BLAS dot); cached on ``tmpl``."""
+    d = tmpl.__dict__.get("_still_dots")
+    if d is None:
+        d = tmpl.__dict__["_still_dots"] = np.array([float(np.dot(t.ravel(), t.ravel())) for t in tmpl], np.float64)
+    return d
+
+
+@njit(cache=True)
+def _still_core(img, pad, r, c, k, cpx, flat, offs, sizes, zflat, tns, lflat, loffs, dens, c_min, snr_min, noise):
+    # _still_steps' answer in one call: 1 yes, 0 no, 2 undecided (the caller then takes _still_steps). The same
+    # correlations (ncc's direct kernels on the same window, the cached zero-mean template) and maximum (first in
+    # row-major order). The amplitude there is a float32 BLAS dot in _still_steps, whose summation order is
+    # unknown: here it is summed in double precision with its error bound, |fl(sum t w) - sum t w| <= gamma_n
+    # sum |t w| (gamma_n = n u / (1 - n u), u = 2^-24, any order, with or without FMA), and the answer is given
+    # only when every float32 sum within that bound gives it (the SNR is a non-decreasing function of that sum)
+    T = sizes[k]
+    top = r + pad - cpx[k, 0] - 1
+    left = c + pad - cpx[k, 1] - 1
+    if top < 0 or left < 0 or top + T + 2 > img.shape[0] or left + T + 2 > img.shape[1]:
+        return 1
+    wc = np.ascontiguousarray(img[top:top + T + 2, left:left + T + 2])
+    R = _ncc_map(wc, _window_sums(wc, T, T), zflat[offs[k]:offs[k] + T * T].reshape((T, T)), tns[k], 1,
+                 lflat[loffs[k]:loffs[k + 1]])
+    bi, bj = 0, 0
+    mx = R[0, 0]
+    for i in range(3):
+        for j in range(3):
+            if R[i, j] > mx:
+                mx, bi, bj = R[i, j], i, j
+    if mx != mx:
+        return 2
+    if np.float64(mx) < c_min:
+        return 0
+    den = dens[k]
+    if not (noise > 0.0) or not (den > 0.0):
+        return 2
+    t = flat[offs[k]:offs[k] + T * T]
+    s = 0.0
+    sa = 0.0
+    for a in range(T):
+        row = wc[bi + a]
+        for b in range(T):
+            p = np.float64(t[a * T + b]) * np.float64(row[bj + b])
+            s += p
+            sa += abs(p)
+    n = T * T
+    g = n * 2.0 ** -24
+    e = (g / (1.0 - g)) * sa * 1.001 + 1e-300 if g < 0.5 else np.inf
+    lo = s - e
+    hi = s + e
+    q = math.sqrt(den)
+    if (lo / den) * q / noise >= snr_min:
+        return 1
+    if (hi / den) * q / noise < snr_min:
+        return 0
+    return 2
+
+
+def _still_steps(resimg, pad, tmpl, calib: Calibration, r, c, k, c_min: float, snr_min: float, noise: float) -> bool:
+    # _still_there step by step (NumPy; any templates)
     import cv2
 
     t = tmpl[k]

@@ -225,6 +225,48 @@ def test_weighted_ncc_is_the_weighted_correlation_at_every_shift():
             assert abs(got[i, j] - want) < 1e-4
 
 
+def test_still_core_is_the_step_by_step_check():
+    """_still_there's numba kernel (_still_core) gives the answers of the NumPy steps (_still_steps), also with the
+    thresholds on the correlation maximum and at the SNR itself (where its amplitude bound leaves it undecided)."""
+    import math
+
+    import ptrack.calibration as C
+    from ptrack.calibration import Calibration
+    from ptrack.gdpt.ncc import Templates, ncc
+
+    rng = np.random.default_rng(11)
+    tm = Templates(np.outer(*[np.exp(-0.5 * (np.arange(T) - T // 2) ** 2 / s ** 2)] * 2).astype(np.float32)
+                   for T, s in ((9, 1.5), (15, 3.0), (41, 8.0)))
+    cal = Calibration(list(tm), np.array([0.0, 1e-6, 2e-6]), np.array([[4.0, 4.0], [7.0, 7.0], [20.4, 19.6]]), None,
+                      "test", {})
+    pad = 25
+    img = rng.normal(0, 1, (90, 90)).astype(np.float32)
+    for y, x, k in ((30, 30, 1), (50, 44, 2), (70, 20, 0)):
+        T = tm[k].shape[0]
+        img[y - T // 2:y + T // 2 + 1, x - T // 2:x + T // 2 + 1] += 30 * tm[k]
+    padded = np.pad(img, pad)
+    n = 0
+    for r, c, k in zip(rng.integers(-5, 95, 60), rng.integers(-5, 95, 60), rng.integers(0, 3, 60)):
+        t = tm[k]
+        T = t.shape[0]
+        top, left = r + pad - int(round(cal.centers[k, 0])) - 1, c + pad - int(round(cal.centers[k, 1])) - 1
+        cms, snrs = [-1.0, 0.3], [-np.inf, 0.5, 5.0]
+        if top >= 0 and left >= 0 and top + T + 2 <= padded.shape[0] and left + T + 2 <= padded.shape[1]:
+            win = padded[top:top + T + 2, left:left + T + 2]
+            R = ncc(win, t)
+            i, j = divmod(int(np.argmax(R)), 3)
+            den = float(np.dot(t.ravel(), t.ravel()))
+            snr = float(np.vdot(t, np.ascontiguousarray(win[i:i + T, j:j + T]))) / den * math.sqrt(den)
+            cms.append(float(R.max()))
+            snrs += [snr, snr * (1 + 1e-7), snr * (1 - 1e-7)]
+        for cm in cms:
+            for sm in snrs:
+                args = (padded, pad, tm, cal, r, c, k, cm, sm, 1.0)
+                assert C._still_there(*args) == C._still_steps(*args)
+                n += C._still_there(*args)
+    assert n > 0
+
+
 def test_snr_bound_bounds_the_residual_check():
     """The bound that lets later rounds skip candidates (ptrack.calibration._snr_bound) is never below the SNR the
     full check (_still_there) finds: just above the bound, the check says no; just below, it may say yes."""
