@@ -302,6 +302,21 @@ def _dev_pair(s, n, p, m, k):
     return x, y
 
 
+@nb.njit(cache=True, inline="always")
+def _sorted_tile_med_mad(s, n):
+    # the median and the MAD (x 1.4826, float32) of the ascending float32 tile s[:n]: the one rule of both
+    # tile-statistics paths (the radix sort's and numpy's)
+    h = n >> 1
+    if n & 1:
+        m = s[h]
+        dev = _dev_pair(s, n, h, m, h)[0]
+    else:
+        m = np.float32((np.float64(s[h - 1]) + np.float64(s[h])) / 2)
+        d0, d1 = _dev_pair(s, n, h, m, h - 1)
+        dev = (d0 + d1) / 2
+    return m, np.float32(1.4826 * dev)
+
+
 @nb.njit(cache=True)
 def _tile_med_mad(sub, nh, nw, th, tw):
     """Median and 1.4826 x median absolute deviation of each ``th x tw`` tile of ``sub``.
@@ -327,7 +342,6 @@ def _tile_med_mad(sub, nh, nw, th, tw):
     med = np.empty((nh, nw), np.float32)
     mad = np.empty((nh, nw), np.float32)
     n = th * tw
-    h = n >> 1
     bits = sub.view(np.uint32)
     ka = np.empty(n, np.uint32)
     kb = np.empty(n, np.uint32)
@@ -366,16 +380,7 @@ def _tile_med_mad(sub, nh, nw, th, tw):
                 src, dst = dst, src
             for k in range(n):
                 src[k] = _sort_unkey(src[k])
-            s = src.view(np.float32)
-            if n & 1:
-                m = s[h]
-                dev = _dev_pair(s, n, h, m, h)[0]
-            else:
-                m = np.float32((np.float64(s[h - 1]) + np.float64(s[h])) / 2)
-                d0, d1 = _dev_pair(s, n, h, m, h - 1)
-                dev = (d0 + d1) / 2
-            med[a, b] = m
-            mad[a, b] = np.float32(1.4826 * dev)
+            med[a, b], mad[a, b] = _sorted_tile_med_mad(src.view(np.float32), n)
     return med, mad
 
 
@@ -411,7 +416,6 @@ def _sorted_med_mad(tiles, negz, nh, nw, med, mad):
     puts them last (the caller then uses :func:`_tile_med_mad`).
     """
     n = tiles.shape[1]
-    h = n >> 1
     for a in range(nh):
         for b in range(nw):
             s = tiles[a * nw + b]
@@ -433,15 +437,7 @@ def _sorted_med_mad(tiles, negz, nh, nw, med, mad):
                 neg = negz[a * nw + b]
                 for t in range(lo, e):
                     s[t] = np.float32(-0.0) if t < lo + neg else np.float32(0.0)
-            if n & 1:
-                m = s[h]
-                dev = _dev_pair(s, n, h, m, h)[0]
-            else:
-                m = np.float32((np.float64(s[h - 1]) + np.float64(s[h])) / 2)
-                d0, d1 = _dev_pair(s, n, h, m, h - 1)
-                dev = (d0 + d1) / 2
-            med[a, b] = m
-            mad[a, b] = np.float32(1.4826 * dev)
+            med[a, b], mad[a, b] = _sorted_tile_med_mad(s, n)
     return True
 
 
