@@ -154,3 +154,41 @@ def test_ring_support_wants_the_ring_all_round():
     # a dark ring (negative in the image) is a ring of sign -1, not of sign +1
     assert ring_support(-ring, **dict(args, sign=[-1.0]))[0]
     assert not ring_support(-ring, **args)[0]
+
+
+def _maxima_brute(z, thr, edge, signed):
+    # 8-neighbour maxima by the rule, written plainly: v = z (or |z|) not at or below thr, no neighbour (times the
+    # pixel's sign) above v, no earlier neighbour in raster order equal to it
+    H, W = z.shape
+    out = []
+    for r in range(edge, H - edge):
+        for c in range(edge, W - edge):
+            v = abs(z[r, c]) if signed else z[r, c]
+            if v <= thr:
+                continue
+            sg = (1.0 if z[r, c] > 0 else -1.0) if signed else 1.0
+            nb = [(sg * z[r + dr, c + dc], (dr, dc)) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if (dr, dc) != (0, 0)]
+            if all(not (u > v or (u == v and (dr < 0 or (dr == 0 and dc < 0)))) for u, (dr, dc) in nb):
+                out.append((r, c))
+    return out
+
+
+def test_local_maxima_as_the_rule_with_ties_nans_and_empty_runs():
+    from ptrack.image.peaks import local_maxima
+
+    rng = np.random.default_rng(3)
+    for t in range(40):
+        H, W = int(rng.integers(3, 40)), int(rng.integers(3, 90))     # rows shorter and longer than a scan run
+        z = rng.normal(size=(H, W)).astype(np.float32 if t % 2 else np.float64)
+        if t % 3 == 0:
+            z = np.round(z * 2) / 2                                     # ties
+        if t % 4 == 0:
+            z[rng.random(z.shape) < 0.03] = np.nan
+        if t % 5 == 0:
+            z[:, : W // 2] = -5.0                                       # runs with |z| above thr, none above it
+        for signed in (False, True):
+            for edge in (1, 2):
+                for thr in (-0.5, 1.0, 2.5):
+                    r, c = local_maxima(z, thr, edge, signed)
+                    assert r.dtype == np.int64 and c.dtype == np.int64
+                    assert list(zip(r.tolist(), c.tolist())) == _maxima_brute(z, thr, edge, signed)

