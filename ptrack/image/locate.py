@@ -437,7 +437,8 @@ def _locate_multiscale(frame, snr=None, gain=1.0, offset=0.0, read_noise=0.0, br
         else:
             classes.append([s])
     for cl in classes:
-        q = np.nonzero(blob & np.isin(scale, cl))[0]
+        # (a class is a run of consecutive values of the sorted uniq: membership is its range, cheaper than isin)
+        q = np.nonzero(blob & (scale >= cl[0]) & (scale <= cl[-1]))[0]
         s0 = fast_median(scale[q])
         src = raw if poisson else sub
         fit = fit_spots(src, rows[q], cols[q], s0, gain=gain if poisson else 1.0,
