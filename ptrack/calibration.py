@@ -73,6 +73,16 @@ _COARSE_EVERY = 2         # _match_one's coarse stage first scores every 2nd of 
 _COARSE_DELTA = 0.1       # (correlation units)
 _MATCH_CORE = True        # _match_one's plain coarse-to-fine path in one numba call (_match_core; False: step by step)
 _STILL_CORE = True        # _still_there in one numba call (_still_core; False: NumPy step by step, the same answers)
+_BOUND_FFT = True         # _snr_bound's sums of t w from _candidates' FFT correlations of the same residual (zero-mean
+                           # template's, plus mean(t) x the window sum) instead of one whole-frame OpenCV TM_CCORR per
+                           # page (~3 % of a random frame): the bound only skips candidates that _still_there refuses
+                           # anyway (below 0.9 x its threshold; both sums within ~1e-6 of exact), so the same answers
+_PER_AMP_CACHE = True     # locate_3d's per-page template signal (sum of max(t, 0), 301 pages) cached on the templates
+                           # (~1.7 % of a random frame when made per frame; the same numbers)
+_CAND_ARRAYS = True       # locate_3d's candidate loop: the distance to the nearest hit and the skip by _snr_bound (at
+                           # the round's starting overlaps; touched windows) kept as arrays over the candidates, updated
+                           # once per accepted hit, instead of per-candidate calls (~900 candidates a random frame; the
+                           # same float64 values and integer tests: the same candidates skipped)
 _FLIP = True               # locate_3d tries the other side of focus for badly explained overlapping images
                            # (_flip_branches): bench_pipeline B diffusion3d recall 0.952 -> 0.955, precision 0.970
                            # -> 0.972, overlapping-image z RMSE 2.06 -> 1.59 % of the depth
@@ -1309,7 +1319,7 @@ class _Residual:
 
 
 def _candidates(padded, pad, tmpl, calib: Calibration, shape, mask, n_templates: int, c_min: float,
-                exclude=None, exclude_r: float = 3.0, with_page: bool = False):
+                exclude=None, exclude_r: float = 3.0, with_page: bool = False, spectra: dict | None = None):
     """Candidate centres (row, col) by correlating a few representative templates over the whole frame.
 
     The GDPTlab way: the frame is correlated with ``n_templates`` pages spread
@@ -1317,6 +1327,9 @@ def _candidates(padded, pad, tmpl, calib: Calibration, shape, mask, n_templates:
     the particle centre of its template; the maximum over templates is
     searched for local maxima (3 x 3) above ``c_min`` inside ``mask`` (pixels
     near signal). Returned in decreasing correlation.
+
+    ``spectra``: a dict that receives the frame's :class:`FrameSpectrum` (``"fs"``) and the pages' whole-frame
+    zero-mean correlations (``"C"``, by page; Templates only), for :func:`_snr_bound` on the same frame.
     """
     import cv2
 
@@ -1329,9 +1342,13 @@ def _candidates(padded, pad, tmpl, calib: Calibration, shape, mask, n_templates:
         # one forward FFT of the frame for all the templates (cached spectra), normalised from integral images;
         # correlations below c_min left out (no candidate there, and lower than any candidate they neighbour)
         fs = FrameSpectrum(padded)
+        keep = None
+        if spectra is not None:
+            keep = spectra["C"] = {}
+            spectra["fs"] = fs
         for k in pages:
             oy, ox = int(round(calib.centers[k, 0])), int(round(calib.centers[k, 1]))
-            fs.ncc_max(tmpl, int(k), pad - oy, pad - ox, cmap, which, c_min)
+            fs.ncc_max(tmpl, int(k), pad - oy, pad - ox, cmap, which, c_min, keep=keep)
     else:
         for k in pages:
             t = tmpl[k]
@@ -1473,7 +1490,8 @@ def _still_steps(resimg, pad, tmpl, calib: Calibration, r, c, k, c_min: float, s
     return a * math.sqrt(den) / noise >= snr_min
 
 
-def _snr_bound(resimg, pad, tmpl, calib: Calibration, rr, cc, kk, noise: float) -> np.ndarray:
+def _snr_bound(resimg, pad, tmpl, calib: Calibration, rr, cc, kk, noise: float, spectra: dict | None = None
+               ) -> np.ndarray:
     """Per candidate, an upper bound of the amplitude SNR :func:`_still_there` would find on ``resimg`` as it is.
 
     That SNR is the least-squares amplitude of template ``k`` at one of the
@@ -1483,12 +1501,46 @@ def _snr_bound(resimg, pad, tmpl, calib: Calibration, rr, cc, kk, noise: float) 
     one small correlation per candidate: a later round on a 512^2 frame of 20
     bright, large images meets ~700 candidates, nearly all leftovers).
     Candidates whose window leaves the padded frame get +inf (never skipped).
+
+    ``spectra``: :func:`_candidates`' correlations of this same ``resimg`` (its ``spectra`` dict): with
+    ``_BOUND_FFT``, sum t w = (zero-mean t's correlation) + mean(t) (window sum) from those instead of an OpenCV
+    correlation per page (float64 FFT and integral image: as close to the exact sum as OpenCV's float32 one;
+    a bound used with a 10 % margin).
     """
     import cv2
 
     out = np.full(len(rr), np.inf)
     Hp, Wp = resimg.shape
-    for k in np.unique(kk):
+    pages = np.unique(kk)
+    if (_BOUND_FFT and spectra is not None and "C" in spectra and spectra["fs"].img.shape == resimg.shape
+            and all(int(k) in spectra["C"] for k in pages)):
+        S, _ = spectra["fs"].integral
+        for k in pages:
+            sel = np.nonzero(kk == k)[0]
+            t = tmpl[k]
+            T = t.shape[0]
+            t64 = t.astype(np.float64)
+            den = float((t64 ** 2).sum())
+            if den <= 0:
+                continue
+            C = spectra["C"][int(k)]
+            tmean = float(t64.mean())
+            oy, ox = int(round(calib.centers[k, 0])), int(round(calib.centers[k, 1]))
+            top = rr[sel] + pad - oy - 1
+            left = cc[sel] + pad - ox - 1
+            ok = (top >= 0) & (left >= 0) & (top + T + 2 <= Hp) & (left + T + 2 <= Wp)
+            if not ok.any():
+                continue
+            tp, lf = top[ok], left[ok]
+            best = np.full(len(tp), -np.inf)
+            for a in range(3):
+                for b in range(3):
+                    y, x = tp + a, lf + b
+                    box = S[y + T, x + T] - S[y, x + T] - S[y + T, x] + S[y, x]
+                    best = np.maximum(best, C[y, x] + tmean * box)
+            out[sel[ok]] = best / (math.sqrt(den) * noise)
+        return out
+    for k in pages:
         sel = np.nonzero(kk == k)[0]
         t = tmpl[k]
         T = t.shape[0]
@@ -2258,7 +2310,14 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
     # defocus, so a sum over the image would not be comparable between heights)
     signed = bool(calib.info.get("signed"))
     bkey = "amp" if signed else "mass"
-    per_amp = np.ones(len(tmpl)) if signed else np.array([float(np.clip(t, 0, None).sum()) for t in tmpl])
+    if signed:
+        per_amp = np.ones(len(tmpl))
+    elif _PER_AMP_CACHE and isinstance(tmpl, Templates):
+        per_amp = tmpl.__dict__.get("_per_amp")
+        if per_amp is None:
+            per_amp = tmpl.__dict__["_per_amp"] = np.array([float(np.clip(t, 0, None).sum()) for t in tmpl])
+    else:
+        per_amp = np.array([float(np.clip(t, 0, None).sum()) for t in tmpl])
     ref = [0.0]          # the frame's typical particle brightness, once known
 
     def cap(h):
@@ -2269,13 +2328,14 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
 
     tick("mask")
     for rnd in range(max(1, int(rounds))):
+        spectra = {} if rnd > 0 and hits else None     # (for _snr_bound on the same residual)
         rr, cc, _, kk = _candidates(res.img, pad, tmpl, calib, (H, W), mask, n_templates, c_candidate,
-                                    exclude=xy() if hits else None, with_page=True)
+                                    exclude=xy() if hits else None, with_page=True, spectra=spectra)
         tick("candidates")
         new = 0
         n_at_start = len(hits)
         idx = _HitIndex(hits, tmpl)     # positions and windows of the hits, for the checks below (no loop over hits)
-        bound = _snr_bound(res.img, pad, tmpl, calib, rr, cc, kk, res.noise) if rnd > 0 and hits else None
+        bound = _snr_bound(res.img, pad, tmpl, calib, rr, cc, kk, res.noise, spectra) if rnd > 0 and hits else None
         touched = []                    # windows of the models subtracted in this round (the bound is stale there)
         if rnd > 0 and hits:
             c_tops = rr + pad - np.round(calib.centers[kk, 0]).astype(np.int64)
@@ -2284,8 +2344,23 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
                         else np.array([tmpl[k].shape[0] for k in kk], np.int64))
         else:
             idx.prepare(rr, cc)
+        pre = None
+        if _CAND_ARRAYS:
+            # idx.nearest_q of every candidate, as hits are accepted; and the candidates that the bound check
+            # below skips already at the round's starting overlaps (idx.ov0: lim only grows as hits are added)
+            # unless a window subtracted since meets theirs (as _touches)
+            dmin = idx.d0.copy()
+            if bound is not None and idx.ov0 is not None:
+                pre = bound < 0.9 * (0.5 * np.maximum(snr_fit, snr_rel * idx.ov0))
+                c_sides = (tmpl.packed[2][kk] if isinstance(tmpl, Templates)
+                           else np.array([tmpl[k].shape[0] for k in kk], np.int64))
+                c_r0, c_c0 = c_tops - 1, c_lefts - 1
+                touch = np.zeros(len(rr), bool)
         for q, (r, c, k0) in enumerate(zip(rr, cc, kk)):
-            if hits and idx.nearest_q(q, r, c) <= 3.0:
+            if _CAND_ARRAYS:
+                if dmin[q] <= 3.0 or (pre is not None and pre[q] and not touch[q]):
+                    continue
+            elif hits and idx.nearest_q(q, r, c) <= 3.0:
                 continue
             if rnd > 0 and hits:
                 # later rounds search the residual, where the leftovers of bright particles' imperfect models
@@ -2317,6 +2392,12 @@ def locate_3d(img, calib: Calibration, sigma: float = 2.0, snr: float = 6.0, mar
             touched.append(sl)
             models.append((sl, mod))
             new += 1
+            if _CAND_ARRAYS:
+                dmin = np.minimum(dmin, np.hypot(hit["y_px"] - rr, hit["x_px"] - cc))
+                if pre is not None:
+                    rs, cs = sl
+                    touch |= ((rs.start < c_r0 + c_sides + 2) & (c_r0 < rs.stop)
+                              & (cs.start < c_c0 + c_sides + 2) & (c_c0 < cs.stop))
         if rnd == 0 and amp_cap and len(hits) >= 3:
             # two overlapping images matched as one were fitted (and subtracted) about twice as bright as a
             # particle: subtract at most amp_cap x the typical brightness, so the other one's light stays in the

@@ -425,3 +425,40 @@ def test_xy_unbiased_at_every_defocus(astigmatism, page, z_range):
             err.append((df["x_px"].iloc[i] - x, df["y_px"].iloc[i] - y))
         mean = np.mean(err, axis=0)
         assert np.all(np.abs(mean) < 0.1), (zb, mean)
+
+
+def test_snr_bound_from_candidate_spectra_equals_opencv_bound():
+    """_snr_bound from _candidates' FFT correlations of the same frame (_BOUND_FFT) gives OpenCV's bound (to its
+    float32 rounding), +inf where the window leaves the frame, as the per-page TM_CCORR path."""
+    import ptrack.calibration as C
+    from ptrack.calibration import Calibration
+    from ptrack.gdpt.ncc import Templates
+
+    rng = np.random.default_rng(3)
+    tm = Templates(np.outer(*[np.exp(-0.5 * (np.arange(T) - T // 2) ** 2 / s ** 2)] * 2).astype(np.float32)
+                   for T, s in ((9, 1.5), (13, 2.5), (19, 4.0)))
+    cal = Calibration(list(tm), np.array([0.0, 1e-6, 2e-6]), np.array([[4.0, 4.0], [6.0, 6.0], [9.0, 9.0]]), None,
+                      "test", {})
+    pad = 12
+    img = rng.normal(0, 1, (90, 90)).astype(np.float32)
+    for (y, x), k in zip(((30, 30), (50, 44), (70, 20), (3, 60)), (2, 1, 0, 2)):
+        T = tm[k].shape[0]
+        h = T // 2
+        img[max(y - h, 0):y + h + 1, x - h:x + h + 1] += 50 * tm[k][max(h - y, 0):]
+    padded = np.pad(img, pad)
+    mask = np.ones(img.shape, bool)
+    spectra = {}
+    rr, cc, _, kk = C._candidates(padded, pad, tm, cal, img.shape, mask, 3, -1.0, with_page=True, spectra=spectra)
+    rr, cc, kk = np.concatenate([rr, [-5, 95, 45]]), np.concatenate([cc, [0, 95, 1]]), np.concatenate([kk, [2, 2, 1]])
+    assert set(spectra["C"]) == {0, 1, 2}
+    a = C._snr_bound(padded, pad, tm, cal, rr, cc, kk, 0.7)
+    b = C._snr_bound(padded, pad, tm, cal, rr, cc, kk, 0.7, spectra)
+    assert np.array_equal(np.isfinite(a), np.isfinite(b)) and not np.isfinite(a).all() and np.isfinite(a).sum() > 20
+    fin = np.isfinite(a)
+    np.testing.assert_allclose(b[fin], a[fin], rtol=1e-5, atol=1e-3)
+    old = C._BOUND_FFT
+    try:
+        C._BOUND_FFT = False
+        np.testing.assert_array_equal(C._snr_bound(padded, pad, tm, cal, rr, cc, kk, 0.7, spectra), a)
+    finally:
+        C._BOUND_FFT = old

@@ -352,19 +352,23 @@ class FrameSpectrum:
 
         return sf.irfft2(self.F * tmpl.spectrum(k, self.shape, zero_mean), self.shape, workers=1)
 
-    def ncc_max(self, tmpl: "Templates", k: int, top: int, left: int, cmap, which, floor: float = -1.0) -> None:
+    def ncc_max(self, tmpl: "Templates", k: int, top: int, left: int, cmap, which, floor: float = -1.0,
+                keep: dict | None = None) -> None:
         """Page ``k``'s normalised correlation (OpenCV's ``TM_CCOEFF_NORMED``; -1 on a constant window) at the
         template corners (top + i, left + j), i, j over cmap's shape, folded into the running maximum ``cmap``
         (float32) and its page ``which`` (int32), in place. The corners' windows must lie inside the frame.
         ``floor`` > 0: correlations below it may be left out (cmap and which then hold the maximum over the
-        pages only where it is at least ``floor``)."""
+        pages only where it is at least ``floor``). ``keep``: a dict in which the page's whole-frame correlation
+        (:meth:`correlate`, zero-mean) is stored under ``k``, for other sums over the same frame."""
         T = int(tmpl.packed[2][k])
         if top < 0 or left < 0 or top + cmap.shape[0] + T - 1 > self.img.shape[0] \
                 or left + cmap.shape[1] + T - 1 > self.img.shape[1]:
             raise ValueError("template windows leave the frame")
         S, SQ = self.integral
-        _ncc_region_max(self.correlate(tmpl, k), S, SQ, T, tmpl.norm64(k), int(top), int(left), int(k),
-                        float(floor), cmap, which)
+        C = self.correlate(tmpl, k)
+        if keep is not None:
+            keep[int(k)] = C
+        _ncc_region_max(C, S, SQ, T, tmpl.norm64(k), int(top), int(left), int(k), float(floor), cmap, which)
 
 
 class Templates(list):
