@@ -83,6 +83,9 @@ _CAND_ARRAYS = True       # locate_3d's candidate loop: the distance to the near
                            # the round's starting overlaps; touched windows) kept as arrays over the candidates, updated
                            # once per accepted hit, instead of per-candidate calls (~900 candidates a random frame; the
                            # same float64 values and integer tests: the same candidates skipped)
+_SHARED_VAR = True        # _candidates' window variances made once per template size for the whole frame
+                           # (FrameSpectrum.box_var, branch-free) and read by the pages of that size (the 7 pages
+                           # have ~4 sizes), instead of per page and pixel inside _ncc_region_max; the same values
 _FLIP = True               # locate_3d tries the other side of focus for badly explained overlapping images
                            # (_flip_branches): bench_pipeline B diffusion3d recall 0.952 -> 0.955, precision 0.970
                            # -> 0.972, overlapping-image z RMSE 2.06 -> 1.59 % of the depth
@@ -1348,7 +1351,7 @@ def _candidates(padded, pad, tmpl, calib: Calibration, shape, mask, n_templates:
             spectra["fs"] = fs
         for k in pages:
             oy, ox = int(round(calib.centers[k, 0])), int(round(calib.centers[k, 1]))
-            fs.ncc_max(tmpl, int(k), pad - oy, pad - ox, cmap, which, c_min, keep=keep)
+            fs.ncc_max(tmpl, int(k), pad - oy, pad - ox, cmap, which, c_min, keep=keep, shared_var=_SHARED_VAR)
     else:
         for k in pages:
             t = tmpl[k]

@@ -462,3 +462,26 @@ def test_snr_bound_from_candidate_spectra_equals_opencv_bound():
         np.testing.assert_array_equal(C._snr_bound(padded, pad, tm, cal, rr, cc, kk, 0.7, spectra), a)
     finally:
         C._BOUND_FFT = old
+
+
+def test_frame_spectrum_shared_variances_give_the_same_maxima():
+    """FrameSpectrum.ncc_max with the windows' variances from box_var (_box_var, _ncc_region_max_var; one map per
+    template size, shared by the pages of that size) gives bitwise the maxima and pages of the per-page kernel."""
+    from ptrack.gdpt.ncc import FrameSpectrum, Templates
+
+    rng = np.random.default_rng(5)
+    tm = Templates(rng.normal(0, 1, (T, T)).astype(np.float32) + np.float32(2.0) for T in (9, 15, 9, 21, 15))
+    img = rng.normal(0, 1, (70, 64)).astype(np.float32)
+    img[20:41, 30:51] += 3 * tm[3]
+    img[:5] = 0.0                                         # a constant strip (zero padding): -1 there
+    for floor in (-1.0, 0.3):
+        maps = []
+        for shared in (False, True):
+            fs = FrameSpectrum(img)
+            cmap = np.full((40, 38), -1.0, np.float32)
+            which = np.zeros(cmap.shape, np.int32)
+            for k, (top, left) in enumerate(((0, 0), (3, 2), (1, 5), (0, 4), (6, 1))):
+                fs.ncc_max(tm, k, top, left, cmap, which, floor, shared_var=shared)
+            maps.append((cmap, which))
+        assert maps[0][0].tobytes() == maps[1][0].tobytes() and np.array_equal(maps[0][1], maps[1][1])
+        assert (maps[0][1] > 0).any() and (maps[0][0] > 0.3).any()

@@ -314,6 +314,43 @@ def _ncc_region_max(C, S, SQ, T, tn, top, left, k, floor, cmap, which):
                 which[i, j] = k
 
 
+@njit(cache=True)
+def _box_var(S, SQ, T, out):
+    # the frame's sum of squared deviations from the mean over the T x T window at every template corner (a, b) of
+    # out's shape, from its integral images: _ncc_region_max's ``var``, the same float64 operations, for all the
+    # pages of one size at once (branch-free rows, vectorised)
+    H, W = out.shape
+    N = T * T
+    for a in range(H):
+        for b in range(W):
+            s1 = S[a + T, b + T] - S[a, b + T] - S[a + T, b] + S[a, b]
+            s2 = SQ[a + T, b + T] - SQ[a, b + T] - SQ[a + T, b] + SQ[a, b]
+            out[a, b] = max(s2 - s1 * s1 / N, 0.0)
+
+
+@njit(cache=True)
+def _ncc_region_max_var(C, V, tn, top, left, k, floor, cmap, which):
+    # _ncc_region_max with the window variances read from V (_box_var of the template's size): the same values
+    H, W = cmap.shape
+    lim = (0.99 * floor) ** 2 * tn if floor > 0 else -1.0
+    for i in range(H):
+        a = top + i
+        for j in range(W):
+            b = left + j
+            c = C[a, b]
+            if lim >= 0 and c <= 0:
+                continue
+            var = V[a, b]
+            if c * c < lim * var:
+                continue
+            d = np.sqrt(var * tn)
+            r = min(max(c / d, -1.0), 1.0) if d > 0 else -1.0
+            v = np.float32(r)
+            if v > cmap[i, j]:
+                cmap[i, j] = v
+                which[i, j] = k
+
+
 class FrameSpectrum:
     """One frame's 2-D FFT, its integral images and the templates' spectra: whole-frame correlations with several
     templates for one forward transform (OpenCV's ``matchTemplate`` transforms frame and template again for
@@ -334,6 +371,7 @@ class FrameSpectrum:
         self.shape = (sf.next_fast_len(H, True), sf.next_fast_len(W, True))
         self.F = sf.rfft2(self.img.astype(np.float64), self.shape, workers=1)
         self._integral = None
+        self._vars = {}
 
     @property
     def integral(self):
@@ -352,14 +390,28 @@ class FrameSpectrum:
 
         return sf.irfft2(self.F * tmpl.spectrum(k, self.shape, zero_mean), self.shape, workers=1)
 
+    def box_var(self, T: int) -> np.ndarray:
+        """The frame's sum of squared deviations from the mean over the T x T window at every template corner
+        inside it ((H - T + 1, W - T + 1), float64, from :attr:`integral`; cached per T)."""
+        V = self._vars.get(int(T))
+        if V is None:
+            S, SQ = self.integral
+            H, W = self.img.shape
+            V = np.empty((H - T + 1, W - T + 1))
+            _box_var(S, SQ, int(T), V)
+            self._vars[int(T)] = V
+        return V
+
     def ncc_max(self, tmpl: "Templates", k: int, top: int, left: int, cmap, which, floor: float = -1.0,
-                keep: dict | None = None) -> None:
+                keep: dict | None = None, shared_var: bool = False) -> None:
         """Page ``k``'s normalised correlation (OpenCV's ``TM_CCOEFF_NORMED``; -1 on a constant window) at the
         template corners (top + i, left + j), i, j over cmap's shape, folded into the running maximum ``cmap``
         (float32) and its page ``which`` (int32), in place. The corners' windows must lie inside the frame.
         ``floor`` > 0: correlations below it may be left out (cmap and which then hold the maximum over the
         pages only where it is at least ``floor``). ``keep``: a dict in which the page's whole-frame correlation
-        (:meth:`correlate`, zero-mean) is stored under ``k``, for other sums over the same frame."""
+        (:meth:`correlate`, zero-mean) is stored under ``k``, for other sums over the same frame. ``shared_var``:
+        the windows' variances from :meth:`box_var` (made once per template size, shared by the pages of that
+        size; the same values)."""
         T = int(tmpl.packed[2][k])
         if top < 0 or left < 0 or top + cmap.shape[0] + T - 1 > self.img.shape[0] \
                 or left + cmap.shape[1] + T - 1 > self.img.shape[1]:
@@ -368,6 +420,10 @@ class FrameSpectrum:
         C = self.correlate(tmpl, k)
         if keep is not None:
             keep[int(k)] = C
+        if shared_var:
+            _ncc_region_max_var(C, self.box_var(T), tmpl.norm64(k), int(top), int(left), int(k), float(floor), cmap,
+                                which)
+            return
         _ncc_region_max(C, S, SQ, T, tmpl.norm64(k), int(top), int(left), int(k), float(floor), cmap, which)
 
 
