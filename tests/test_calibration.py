@@ -485,3 +485,30 @@ def test_frame_spectrum_shared_variances_give_the_same_maxima():
             maps.append((cmap, which))
         assert maps[0][0].tobytes() == maps[1][0].tobytes() and np.array_equal(maps[0][1], maps[1][1])
         assert (maps[0][1] > 0).any() and (maps[0][0] > 0.3).any()
+
+
+def test_add_window_equals_numpy_in_place_slice_ops():
+    """_Residual.add / subtract by _add_window (_WINDOW_ADD) leave bitwise NumPy's in-place slice sums; windows
+    that do not fit take the NumPy path."""
+    import ptrack.calibration as C
+
+    rng = np.random.default_rng(9)
+    img = rng.normal(0, 10, (60, 70)).astype(np.float32)
+    mod = rng.normal(0, 3, (21, 21)).astype(np.float32)
+    res = C._Residual(img.copy(), 5, None, 1.0)
+    ref = img.copy()
+    sl = (slice(7, 28), slice(40, 61))
+    res.subtract(sl, mod)
+    ref[sl] -= mod
+    assert res.img.tobytes() == ref.tobytes()
+    res.add(sl, mod * np.float32(0.7))
+    ref[sl] += mod * np.float32(0.7)
+    assert res.img.tobytes() == ref.tobytes()
+    assert not res._fast((slice(50, 71), slice(0, 21)), mod)            # leaves the frame
+    assert not res._fast(sl, mod.astype(np.float64))
+    old = C._WINDOW_ADD
+    try:
+        C._WINDOW_ADD = False
+        assert not res._fast(sl, mod)
+    finally:
+        C._WINDOW_ADD = old
