@@ -512,3 +512,19 @@ def test_add_window_equals_numpy_in_place_slice_ops():
         assert not res._fast(sl, mod)
     finally:
         C._WINDOW_ADD = old
+
+
+@pytest.mark.parametrize("shape, rad, p", [((171, 171), 21, 0.002), ((64, 90), 15, 0.01), ((40, 33), 7, 0.05),
+                                           ((10, 80), 3, 0.2), ((30, 30), 20, 0.0)])
+def test_grow_mask_by_rows_equals_opencv_elliptic_dilation(shape, rad, p):
+    """_grow_mask through _dilate_rows (_MASK_ROWS) gives cv2.dilate's mask with the elliptic element, edges
+    included."""
+    import cv2
+
+    import ptrack.calibration as C
+
+    sig = (np.random.default_rng(rad).random(shape) < p).astype(np.uint8)
+    sig[0, -1] = 1 if p else 0                          # a signal pixel in a corner
+    ref = cv2.dilate(sig, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))) > 0
+    got = C._grow_mask(sig, rad)
+    assert C._ellipse_rows(rad) is not None and got.dtype == bool and np.array_equal(got, ref)
