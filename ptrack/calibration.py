@@ -1634,11 +1634,11 @@ def _best_in_window(resimg, pad, tmpl, calib: Calibration, r0, r1, c0, c1, n_tem
     K = len(tmpl)
     lean = _WINDOW_LEAN and isinstance(tmpl, Templates)
     if lean:
-        key = ("_window_pages", int(n_templates), K)
-        pages = tmpl.__dict__.get(key)
+        cache = tmpl.__dict__.setdefault("_window_pages", {})       # (string attribute keys only: dir() sorts them)
+        pages = cache.get((int(n_templates), K))
         if pages is None:
-            pages = tmpl.__dict__[key] = [int(k) for k in
-                                          np.unique(np.round(np.linspace(0, K - 1, min(n_templates, K))).astype(int))]
+            pages = cache[(int(n_templates), K)] = [
+                int(k) for k in np.unique(np.round(np.linspace(0, K - 1, min(n_templates, K))).astype(int))]
         cpx = _center_px(calib)
     else:
         pages = np.unique(np.round(np.linspace(0, K - 1, min(n_templates, K))).astype(int))
