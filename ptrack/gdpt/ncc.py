@@ -284,6 +284,27 @@ def ncc_corners(img, tmpl: "Templates", pages, tops, lefts, n: int) -> np.ndarra
     return out
 
 
+@njit(cache=True, inline="always")
+def _window_var(S, SQ, T, N, a, b):
+    # the sum of squared deviations from the mean of the T x T window with corner (a, b), N = T^2 pixels, from the
+    # frame's integral images S, SQ (float64)
+    s1 = S[a + T, b + T] - S[a, b + T] - S[a + T, b] + S[a, b]
+    s2 = SQ[a + T, b + T] - SQ[a, b + T] - SQ[a + T, b] + SQ[a, b]
+    return max(s2 - s1 * s1 / N, 0.0)
+
+
+@njit(cache=True, inline="always")
+def _keep_max(c, var, tn, k, cmap, which, i, j):
+    # the normalised correlation c / sqrt(var tn) (clipped to [-1, 1], -1 without variance) as float32 into the
+    # running maximum cmap[i, j] and its template which[i, j]
+    d = np.sqrt(var * tn)
+    r = min(max(c / d, -1.0), 1.0) if d > 0 else -1.0
+    v = np.float32(r)
+    if v > cmap[i, j]:
+        cmap[i, j] = v
+        which[i, j] = k
+
+
 @njit(cache=True)
 def _ncc_region_max(C, S, SQ, T, tn, top, left, k, floor, cmap, which):
     # the normalised correlation of one zero-mean template (side T, sum of squares tn) at the template corners
@@ -301,31 +322,21 @@ def _ncc_region_max(C, S, SQ, T, tn, top, left, k, floor, cmap, which):
             c = C[a, b]
             if lim >= 0 and c <= 0:
                 continue
-            s1 = S[a + T, b + T] - S[a, b + T] - S[a + T, b] + S[a, b]
-            s2 = SQ[a + T, b + T] - SQ[a, b + T] - SQ[a + T, b] + SQ[a, b]
-            var = max(s2 - s1 * s1 / N, 0.0)
+            var = _window_var(S, SQ, T, N, a, b)
             if c * c < lim * var:
                 continue
-            d = np.sqrt(var * tn)
-            r = min(max(c / d, -1.0), 1.0) if d > 0 else -1.0
-            v = np.float32(r)
-            if v > cmap[i, j]:
-                cmap[i, j] = v
-                which[i, j] = k
+            _keep_max(c, var, tn, k, cmap, which, i, j)
 
 
 @njit(cache=True)
 def _box_var(S, SQ, T, out):
-    # the frame's sum of squared deviations from the mean over the T x T window at every template corner (a, b) of
-    # out's shape, from its integral images: _ncc_region_max's ``var``, the same float64 operations, for all the
-    # pages of one size at once (branch-free rows, vectorised)
+    # _window_var at every template corner (a, b) of out's shape: _ncc_region_max's ``var`` for all the pages of one
+    # size at once
     H, W = out.shape
     N = T * T
     for a in range(H):
         for b in range(W):
-            s1 = S[a + T, b + T] - S[a, b + T] - S[a + T, b] + S[a, b]
-            s2 = SQ[a + T, b + T] - SQ[a, b + T] - SQ[a + T, b] + SQ[a, b]
-            out[a, b] = max(s2 - s1 * s1 / N, 0.0)
+            out[a, b] = _window_var(S, SQ, T, N, a, b)
 
 
 @njit(cache=True)
@@ -343,12 +354,7 @@ def _ncc_region_max_var(C, V, tn, top, left, k, floor, cmap, which):
             var = V[a, b]
             if c * c < lim * var:
                 continue
-            d = np.sqrt(var * tn)
-            r = min(max(c / d, -1.0), 1.0) if d > 0 else -1.0
-            v = np.float32(r)
-            if v > cmap[i, j]:
-                cmap[i, j] = v
-                which[i, j] = k
+            _keep_max(c, var, tn, k, cmap, which, i, j)
 
 
 class FrameSpectrum:
