@@ -306,12 +306,13 @@ def _keep_max(c, var, tn, k, cmap, which, i, j):
 
 
 @njit(cache=True)
-def _ncc_region_max(C, S, SQ, T, tn, top, left, k, floor, cmap, which):
+def _region_max(C, S, SQ, V, from_v, T, tn, top, left, k, floor, cmap, which):
     # the normalised correlation of one zero-mean template (side T, sum of squares tn) at the template corners
-    # (top + i, left + j) of cmap's shape, from its whole-frame correlation C (FFT) and the frame's integral images S,
-    # SQ (cv2.integral2, float64); cmap, which: the running maximum over templates and its template (in place).
-    # Values below ``floor`` (> 0) may be left out: a correlation r >= floor needs C > 0 and C^2 >= floor^2 var tn,
-    # tested (with 1 % to spare) before the square root and division
+    # (top + i, left + j) of cmap's shape, from its whole-frame correlation C (FFT) and the windows' variances: read
+    # from V (from_v: _box_var of the template's size) or made here from the frame's integral images S, SQ
+    # (cv2.integral2, float64), the same values; cmap, which: the running maximum over templates and its template
+    # (in place). Values below ``floor`` (> 0) may be left out: a correlation r >= floor needs C > 0 and
+    # C^2 >= floor^2 var tn, tested (with 1 % to spare) before the square root and division
     H, W = cmap.shape
     N = T * T
     lim = (0.99 * floor) ** 2 * tn if floor > 0 else -1.0
@@ -322,39 +323,35 @@ def _ncc_region_max(C, S, SQ, T, tn, top, left, k, floor, cmap, which):
             c = C[a, b]
             if lim >= 0 and c <= 0:
                 continue
-            var = _window_var(S, SQ, T, N, a, b)
+            var = V[a, b] if from_v else _window_var(S, SQ, T, N, a, b)
             if c * c < lim * var:
                 continue
             _keep_max(c, var, tn, k, cmap, which, i, j)
 
 
+def _ncc_region_max(C, S, SQ, T, tn, top, left, k, floor, cmap, which):
+    """:func:`_region_max` with the variances from the integral images."""
+    _region_max(C, S, SQ, _NO_V, False, T, tn, top, left, k, floor, cmap, which)
+
+
+def _ncc_region_max_var(C, V, tn, top, left, k, floor, cmap, which):
+    """:func:`_region_max` with the variances read from ``V`` (:func:`_box_var` of the template's size)."""
+    _region_max(C, _NO_S, _NO_S, V, True, 0, tn, top, left, k, floor, cmap, which)
+
+
+_NO_V = np.zeros((1, 1))
+_NO_S = np.zeros((1, 1))
+
+
 @njit(cache=True)
 def _box_var(S, SQ, T, out):
-    # _window_var at every template corner (a, b) of out's shape: _ncc_region_max's ``var`` for all the pages of one
-    # size at once
+    # _window_var at every template corner (a, b) of out's shape: the region maximum's ``var`` for all the pages of
+    # one size at once
     H, W = out.shape
     N = T * T
     for a in range(H):
         for b in range(W):
             out[a, b] = _window_var(S, SQ, T, N, a, b)
-
-
-@njit(cache=True)
-def _ncc_region_max_var(C, V, tn, top, left, k, floor, cmap, which):
-    # _ncc_region_max with the window variances read from V (_box_var of the template's size): the same values
-    H, W = cmap.shape
-    lim = (0.99 * floor) ** 2 * tn if floor > 0 else -1.0
-    for i in range(H):
-        a = top + i
-        for j in range(W):
-            b = left + j
-            c = C[a, b]
-            if lim >= 0 and c <= 0:
-                continue
-            var = V[a, b]
-            if c * c < lim * var:
-                continue
-            _keep_max(c, var, tn, k, cmap, which, i, j)
 
 
 class FrameSpectrum:
