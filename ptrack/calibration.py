@@ -1555,52 +1555,41 @@ def _snr_bound(resimg, pad, tmpl, calib: Calibration, rr, cc, kk, noise: float, 
     out = np.full(len(rr), np.inf)
     Hp, Wp = resimg.shape
     pages = np.unique(kk)
-    if (_BOUND_FFT and spectra is not None and "C" in spectra and spectra["fs"].img.shape == resimg.shape
-            and all(int(k) in spectra["C"] for k in pages)):
+    fft = (_BOUND_FFT and spectra is not None and "C" in spectra and spectra["fs"].img.shape == resimg.shape
+           and all(int(k) in spectra["C"] for k in pages))
+    if fft:
         S, _ = spectra["fs"].integral
-        for k in pages:
-            sel = np.nonzero(kk == k)[0]
-            t = tmpl[k]
-            T = t.shape[0]
-            t64 = t.astype(np.float64)
-            den = float((t64 ** 2).sum())
-            if den <= 0:
-                continue
-            C = spectra["C"][int(k)]
-            tmean = float(t64.mean())
-            oy, ox = int(round(calib.centers[k, 0])), int(round(calib.centers[k, 1]))
-            top = rr[sel] + pad - oy - 1
-            left = cc[sel] + pad - ox - 1
-            ok = (top >= 0) & (left >= 0) & (top + T + 2 <= Hp) & (left + T + 2 <= Wp)
-            if not ok.any():
-                continue
-            tp, lf = top[ok], left[ok]
-            best = np.full(len(tp), -np.inf)
-            for a in range(3):
-                for b in range(3):
-                    y, x = tp + a, lf + b
-                    box = S[y + T, x + T] - S[y, x + T] - S[y + T, x] + S[y, x]
-                    best = np.maximum(best, C[y, x] + tmean * box)
-            out[sel[ok]] = best / (math.sqrt(den) * noise)
-        return out
     for k in pages:
         sel = np.nonzero(kk == k)[0]
         t = tmpl[k]
         T = t.shape[0]
-        den = float((t.astype(np.float64) ** 2).sum())
+        t64 = t.astype(np.float64)
+        den = float((t64 ** 2).sum())
         if den <= 0:
             continue
-        R = cv2.matchTemplate(resimg, t, cv2.TM_CCORR)          # R[top, left] = sum t * window
         oy, ox = int(round(calib.centers[k, 0])), int(round(calib.centers[k, 1]))
         top = rr[sel] + pad - oy - 1
         left = cc[sel] + pad - ox - 1
         ok = (top >= 0) & (left >= 0) & (top + T + 2 <= Hp) & (left + T + 2 <= Wp)
         if not ok.any():
             continue
-        best = np.full(ok.sum(), -np.inf)
+        tp, lf = top[ok], left[ok]
+        if fft:
+            # sum t w at corner (y, x): the zero-mean template's correlation plus mean(t) x the window sum
+            C = spectra["C"][int(k)]
+            tmean = float(t64.mean())
+
+            def tw(y, x):
+                return C[y, x] + tmean * (S[y + T, x + T] - S[y, x + T] - S[y + T, x] + S[y, x])
+        else:
+            R = cv2.matchTemplate(resimg, t, cv2.TM_CCORR)          # R[top, left] = sum t * window
+
+            def tw(y, x):
+                return R[y, x]
+        best = np.full(len(tp), -np.inf)
         for a in range(3):
             for b in range(3):
-                best = np.maximum(best, R[top[ok] + a, left[ok] + b])
+                best = np.maximum(best, tw(tp + a, lf + b))
         out[sel[ok]] = best / (math.sqrt(den) * noise)
     return out
 
