@@ -59,8 +59,8 @@ __all__ = ["DEFAULT_SCALES", "FALSE_ALARM_RATE", "MAP_REFRESH", "bandpass", "noi
 #: Default scale ladder (Gaussian sigma of the spot, px): sqrt(2) steps from 1 to 4 px. Larger images (rings,
 #: strong defocus) are found at 4 px: a matched filter too small by 1.4-2x loses little SNR, and a sixth scale
 #: cost 10-20 % of the frame time. The steps are exact (not 1.41 and 2.83): the surround of each scale is then
-#: the scale two rungs up (_SURROUND), so the ladder is n + 2 = 7 blurs; with the rounded values 2 x 1.41 = 2.82
-#: and 2.83 were two blurs of the ladder, one of them a full-size interpolation (~2.5 % of a real frame's time).
+#: the scale two rungs up (_SURROUND), so the ladder is n + 2 = 7 blurs (rounded values make 2 x 1.41 = 2.82 and
+#: 2.83 two blurs, one of them a full-size interpolation).
 DEFAULT_SCALES = (1.0, math.sqrt(2.0), 2.0, 2.0 * math.sqrt(2.0), 4.0)
 #: Frames that share one measurement of the noise and background maps when :func:`detect` is given a cache
 #: (the maps follow the camera and the illumination, not the particles; measuring them costs ~40 % of a frame).
