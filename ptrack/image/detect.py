@@ -1055,7 +1055,7 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         for sign in (1, -1):
             bm = maps[sign]
             r, c = local_maxima(bm, float(u), 1, False)
-            maxima[sign] = np.asarray(r, np.int64), np.asarray(c, np.int64)
+            maxima[sign] = r, c
             score.append(float(np.sum(bm[maxima[sign]] - u)) if len(r) else 0.0)
         polarity = 1 if score[0] >= score[1] else -1
     else:
@@ -1071,7 +1071,6 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         rows, cols = rows[inside], cols[inside]
     else:
         rows, cols = local_maxima(best, float(u), int(edge), False)
-    rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
     # the scale index of each candidate's best SNR, from the inverse-noise values the best-over-scales pass used
     kk = _scale_at_full(b1s, b2s, ivs, float(polarity), rows, cols) if ivs is not None else \
         _scale_at(b1s, b2s, invs, H, W, float(polarity), rows, cols)

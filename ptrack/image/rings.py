@@ -345,8 +345,7 @@ def ring_maps_candidates(bands, J, noise_pix, rate: float, scales, radii=RING_RA
         arg[better] = k
     if noise_cache is not None and cached is None:
         noise_cache[ckey] = tuple(invs)
-    gi, gj = local_maxima(best, float(0.8 * u), 1, True)  # bright and dark rings in one pass
-    gi, gj = np.asarray(gi, np.int64), np.asarray(gj, np.int64)
+    gi, gj = local_maxima(best, float(0.8 * u), 1, True)  # bright and dark rings in one pass (int64 arrays)
     ka = arg[gi, gj].astype(np.int64)
     rows = np.zeros(len(gi), np.int64)
     cols = np.zeros(len(gi), np.int64)
