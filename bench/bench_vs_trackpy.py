@@ -153,22 +153,14 @@ def _clock():
 
 
 def _ours_locate_link(frames, cam):
-    """ptrack as ``ptrack track`` runs it: knob-free locate, polarity from frame 0, the frames sharing their
-    noise and background maps (``cache``), then ``ptrack.link.link``. Times are (CPU, wall) s."""
-    import pandas as pd
-
+    """ptrack as ``ptrack track`` runs it: knob-free locate (``ptrack.image.locate.batch``: polarity from frame
+    0, the frames sharing their noise and background maps, one table), then ``ptrack.link.link``. Times are
+    (CPU, wall) s."""
+    from ptrack.image.locate import batch
     from ptrack.link import link
 
     t0 = _clock()
-    pol = None
-    maps = {}
-    chunks = []
-    for i, f in enumerate(frames):
-        df = locate(f, gain=cam.gain, offset=cam.offset, read_noise=cam.read_noise, brightfield=pol, frame_no=i,
-                    cache=maps)
-        pol = bool(df["polarity"].iloc[0] < 0) if len(df) and pol is None else pol   # fixed after frame 0
-        chunks.append(df)
-    feats = pd.concat(chunks, ignore_index=True)
+    feats = batch(frames, gain=cam.gain, offset=cam.offset, read_noise=cam.read_noise)
     t1 = _clock()
     linked = link(feats)
     t2 = _clock()

@@ -74,6 +74,7 @@ def locate_movie(movie, brightfield: bool | None = None, diameter: float | None 
     from . import calibration as cal_mod
     from .image.detect import detect
     from .io import check_not_blank
+    from .image.locate import _concat_columns, _frame_table, _locate_columns
     from .locate import diameter_to_sigma, locate, sigma_to_diameter
     from .preprocess import prepare, temporal_background
 
@@ -124,6 +125,8 @@ def locate_movie(movie, brightfield: bool | None = None, diameter: float | None 
     elif background not in ("spatial", "none"):
         raise UserError(f"background = {background!r} is not known", "use spatial, temporal or none")
     has_3d = hasattr(cal_mod, "locate_frame_3d")
+    # the knob-free path with the spatial background: per frame the table's columns, one table for the movie
+    columns = multiscale and isinstance(bg, str) and bg == "spatial"
     chunks = []
     # GDPT sums its own stage times into calib.info (over every call): this movie's share is the difference
     z_before = dict(calib.info.get("stage_times_s", {})) if calib is not None else {}
@@ -143,9 +146,10 @@ def locate_movie(movie, brightfield: bool | None = None, diameter: float | None 
                     df = cal_mod.locate_3d(img, calib, snr=7.0 if snr is None else snr, cm_min=cm_min)
                 times["z"] += time.perf_counter() - t
                 df.insert(0, "frame", np.full(len(df), i, np.int64))
-            elif multiscale and isinstance(bg, str) and bg == "spatial":
-                df = locate(raw, snr=snr, gain=gain, offset=offset, read_noise=read_noise,
-                            brightfield=brightfield, frame_no=i, cache=maps)
+            elif columns:
+                # (the frame's columns: the movie's table is made once, below, as ptrack.image.locate.batch does)
+                df = _locate_columns(raw, snr=snr, gain=gain, offset=offset, read_noise=read_noise,
+                                     brightfield=brightfield, frame_no=i, cache=maps)
                 times["locate"] += time.perf_counter() - t
             else:
                 img = None
@@ -156,7 +160,10 @@ def locate_movie(movie, brightfield: bool | None = None, diameter: float | None 
                 times["locate"] += time.perf_counter() - t
             chunks.append(df)
             bar.update(1)
-    feats = pd.concat(chunks, ignore_index=True) if chunks else pd.DataFrame()
+    if columns:
+        feats = _frame_table(_concat_columns(chunks))
+    else:
+        feats = pd.concat(chunks, ignore_index=True) if chunks else pd.DataFrame()
     if len(feats) == 0:
         raise UserError(f"no particle found in {movie.source}",
                         "check the movie (is it empty or out of focus?), lower --snr or give --diameter")

@@ -5,7 +5,7 @@ import importlib
 import pytest
 
 MODULES = ["ptrack.motion", "ptrack.motion.diffusion", "ptrack.motion.tracks", "ptrack.motion.truth", "ptrack.motion.stokes", "ptrack.analysis",
-           "ptrack.plot", "ptrack.mainjob", "ptrack.twin"]
+           "ptrack.plot", "ptrack.mainjob", "ptrack.twin", "ptrack.image.locate"]
 
 
 @pytest.mark.parametrize("name", MODULES)

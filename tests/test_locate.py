@@ -205,3 +205,31 @@ def test_stage_times_in_the_cache_survive_a_map_refresh():
     assert all(v >= 0 for v in tm.values())
     assert tm["detect"] > after_first["detect"] and tm["fit"] > after_first["fit"]   # not reset by the refresh
     assert cache["age"] == 2        # the maps were measured again after MAP_REFRESH frames
+
+
+@pytest.mark.parametrize("dark", [False, True])
+def test_batch_is_locate_frame_by_frame_with_one_cache_and_the_first_polarity(dark):
+    # ptrack.image.locate.batch (trackpy.batch's role, the movie's table made once) gives the table of locate on
+    # each frame with one cache, the polarity decided on the first frame with particles and then fixed
+    from ptrack.locate import batch
+
+    rng = np.random.default_rng(11)
+    frames = [np.full((80, 80), 100, np.uint16)]         # a blank first frame: no particle, no polarity yet
+    for i in range(4):
+        xs, ys = grid_positions((80, 80), 18, rng)
+        f = gaussian_frame(xs, ys, (80, 80), 1.4, 2500.0, 30.0, 1.0, 100.0, rng)
+        frames.append((4000 - f).astype(np.uint16) if dark else f)
+    cache = {}
+    pol = None
+    chunks = []
+    for i, f in enumerate(frames):
+        df = locate(f, offset=0.0 if dark else 100.0, brightfield=pol, frame_no=10 + 2 * i, cache=cache)
+        pol = bool(df["polarity"].iloc[0] < 0) if len(df) and pol is None else pol
+        chunks.append(df)
+    want = pd.concat(chunks, ignore_index=True)
+    got = batch(frames, offset=0.0 if dark else 100.0, frame_numbers=range(10, 20, 2))
+    assert len(got) > 4 * 9 and (got["frame"] != 10).all()
+    assert set(got["polarity"]) == {-1 if dark else 1}
+    pd.testing.assert_frame_equal(got, want)
+    assert list(batch([]).columns) == list(want.columns) and len(batch([])) == 0
+    assert batch([]).dtypes.equals(want.dtypes)
