@@ -40,8 +40,10 @@ def locate_movie(movie, brightfield: bool | None = None, diameter: float | None 
     movie : ptrack.io.Movie
     brightfield : bool, optional
         Dark particles on a bright field (True) or bright particles (False);
-        None: decided from the first frame (:func:`ptrack.image.detect.detect`)
-        and reported in ``info['polarity_from']``.
+        None: decided from the data and reported in ``info['polarity_from']``
+        (the knob-free path: by :func:`ptrack.image.locate.batch`, on the first
+        frame with particles; the others: :func:`ptrack.image.detect.detect` on
+        the first frame).
     diameter : float, optional
         Particle image diameter (px, = 4 sigma of the spot): selects the
         single-size detector. None (default, 2D): multi-scale detection, each
@@ -74,8 +76,7 @@ def locate_movie(movie, brightfield: bool | None = None, diameter: float | None 
     from . import calibration as cal_mod
     from .image.detect import detect
     from .io import check_not_blank
-    from .image.locate import _concat_columns, _frame_table, _locate_columns
-    from .locate import diameter_to_sigma, locate, sigma_to_diameter
+    from .locate import batch, diameter_to_sigma, locate, sigma_to_diameter
     from .preprocess import prepare, temporal_background
 
     if min(movie.shape) < 8:
@@ -92,7 +93,13 @@ def locate_movie(movie, brightfield: bool | None = None, diameter: float | None 
     # the frames of the movie share their noise and background maps (measured again every
     # ptrack.image.detect.MAP_REFRESH frames, or when the background level moves)
     maps = {}
-    if brightfield is None:
+    multiscale = diameter is None and calib is None
+    # the knob-free path with the spatial background: the frames through ptrack.image.locate.batch (its polarity
+    # rule, its shared maps, one table for the movie); the other paths need the polarity before the first frame
+    columns = multiscale and background == "spatial"
+    if brightfield is None and columns:
+        info["polarity_from"] = "data"
+    elif brightfield is None:
         # polarity from the data (first frame), fixed for the movie
         t = time.perf_counter()
         first = movie[frames[0] if len(frames) else 0]
@@ -104,10 +111,6 @@ def locate_movie(movie, brightfield: bool | None = None, diameter: float | None 
         info["polarity_from"] = "data"
     else:
         info["polarity_from"] = "--brightfield" if brightfield else "option (fluorescence)"
-    brightfield = bool(brightfield)
-    info["brightfield"] = brightfield
-    info["polarity"] = "dark particles on a bright field" if brightfield else "bright particles on a dark field"
-    multiscale = diameter is None and calib is None
     sigma = None
     if diameter is not None:
         sigma = diameter_to_sigma(check_positive("diameter", diameter))
@@ -125,45 +128,55 @@ def locate_movie(movie, brightfield: bool | None = None, diameter: float | None 
     elif background not in ("spatial", "none"):
         raise UserError(f"background = {background!r} is not known", "use spatial, temporal or none")
     has_3d = hasattr(cal_mod, "locate_frame_3d")
-    # the knob-free path with the spatial background: per frame the table's columns, one table for the movie
-    columns = multiscale and isinstance(bg, str) and bg == "spatial"
     chunks = []
     # GDPT sums its own stage times into calib.info (over every call): this movie's share is the difference
     z_before = dict(calib.info.get("stage_times_s", {})) if calib is not None else {}
     with _progress(len(frames), Path(movie.source).name, progress) as bar:
-        for i in frames:
+        if columns:
+            def reading():
+                # the frames as batch takes them, the read time apart and the bar moved once a frame is located
+                for i in frames:
+                    t = time.perf_counter()
+                    raw = movie[i]
+                    times["read"] += time.perf_counter() - t
+                    yield raw
+                    bar.update(1)
             t = time.perf_counter()
-            raw = movie[i]
-            times["read"] += time.perf_counter() - t
-            t = time.perf_counter()
-            if calib is not None:
-                if has_3d:
-                    df = cal_mod.locate_frame_3d(raw, calib, brightfield=brightfield, background=bg,
-                                                 snr=7.0 if snr is None else snr, cm_min=cm_min, gain=gain,
-                                                 offset=offset, read_noise=read_noise)
+            read_before = times["read"]
+            feats = batch(reading(), brightfield=brightfield, snr=snr, gain=gain, offset=offset,
+                          read_noise=read_noise, cache=maps, frame_numbers=frames)
+            times["locate"] += time.perf_counter() - t - (times["read"] - read_before)
+            if brightfield is None:
+                brightfield = bool(len(feats) and feats["polarity"].iloc[0] < 0)
+        else:
+            for i in frames:
+                t = time.perf_counter()
+                raw = movie[i]
+                times["read"] += time.perf_counter() - t
+                t = time.perf_counter()
+                if calib is not None:
+                    if has_3d:
+                        df = cal_mod.locate_frame_3d(raw, calib, brightfield=brightfield, background=bg,
+                                                     snr=7.0 if snr is None else snr, cm_min=cm_min, gain=gain,
+                                                     offset=offset, read_noise=read_noise)
+                    else:
+                        img = cal_mod.prepare_gdpt(raw, calib, brightfield=brightfield, background=bg)
+                        df = cal_mod.locate_3d(img, calib, snr=7.0 if snr is None else snr, cm_min=cm_min)
+                    times["z"] += time.perf_counter() - t
+                    df.insert(0, "frame", np.full(len(df), i, np.int64))
                 else:
-                    img = cal_mod.prepare_gdpt(raw, calib, brightfield=brightfield, background=bg)
-                    df = cal_mod.locate_3d(img, calib, snr=7.0 if snr is None else snr, cm_min=cm_min)
-                times["z"] += time.perf_counter() - t
-                df.insert(0, "frame", np.full(len(df), i, np.int64))
-            elif columns:
-                # (the frame's columns: the movie's table is made once, below, as ptrack.image.locate.batch does)
-                df = _locate_columns(raw, snr=snr, gain=gain, offset=offset, read_noise=read_noise,
-                                     brightfield=brightfield, frame_no=i, cache=maps)
-                times["locate"] += time.perf_counter() - t
-            else:
-                img = None
-                if brightfield or not (isinstance(bg, str) and bg == "spatial"):
-                    img = prepare(raw, brightfield=brightfield, background=bg, bg_size=bg_size)
-                df = locate(raw, img, sigma=sigma or 1.5, snr=7.0 if snr is None else snr, gain=gain, offset=offset,
-                            read_noise=read_noise, brightfield=brightfield, frame_no=i)
-                times["locate"] += time.perf_counter() - t
-            chunks.append(df)
-            bar.update(1)
-    if columns:
-        feats = _frame_table(_concat_columns(chunks))
-    else:
-        feats = pd.concat(chunks, ignore_index=True) if chunks else pd.DataFrame()
+                    img = None
+                    if brightfield or not (isinstance(bg, str) and bg == "spatial"):
+                        img = prepare(raw, brightfield=brightfield, background=bg, bg_size=bg_size)
+                    df = locate(raw, img, sigma=sigma or 1.5, snr=7.0 if snr is None else snr, gain=gain,
+                                offset=offset, read_noise=read_noise, brightfield=brightfield, frame_no=i)
+                    times["locate"] += time.perf_counter() - t
+                chunks.append(df)
+                bar.update(1)
+            feats = pd.concat(chunks, ignore_index=True) if chunks else pd.DataFrame()
+    brightfield = bool(brightfield)
+    info["brightfield"] = brightfield
+    info["polarity"] = "dark particles on a bright field" if brightfield else "bright particles on a dark field"
     if len(feats) == 0:
         raise UserError(f"no particle found in {movie.source}",
                         "check the movie (is it empty or out of focus?), lower --snr or give --diameter")
