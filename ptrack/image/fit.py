@@ -1460,6 +1460,64 @@ def _within_radius(x, y, order, radius, k):
     return keys, crowded
 
 
+@nb.njit(cache=True)
+def _tasks_from_keys(keys, n):
+    # _neighbour_tasks' (grouped, ptr, members, report) from the sorted neighbour rows `keys` (padded with n) of
+    # the n spots, each group coded as one integer in base n + 1 ((n + 1)^K < 2^62): the distinct groups in
+    # increasing code (the lexicographic order of their rows, as np.unique gives them), members in order, each
+    # spot with a neighbour reported from its own group's task at its place among the members
+    m, K = keys.shape
+    grouped = np.zeros(m, np.bool_)
+    owners = np.empty(m, np.int64)
+    cnt = 0
+    for a in range(m):
+        if keys[a, 1] < n:
+            owners[cnt] = a
+            grouped[a] = True
+            cnt += 1
+    code = np.empty(cnt, np.int64)
+    for t in range(cnt):
+        v = 0
+        for j in range(K):
+            v = v * (n + 1) + keys[owners[t], j]
+        code[t] = v
+    order = np.argsort(code)
+    inv = np.empty(cnt, np.int64)
+    first = np.empty(cnt, np.int64)
+    nu = 0
+    for q in range(cnt):
+        t = order[q]
+        if q == 0 or code[t] != code[order[q - 1]]:
+            first[nu] = t
+            nu += 1
+        inv[t] = nu - 1
+    ptr = np.zeros(nu + 1, np.int64)
+    for u in range(nu):
+        a = owners[first[u]]
+        k = 0
+        for j in range(K):
+            if keys[a, j] < n:
+                k += 1
+        ptr[u + 1] = ptr[u] + k
+    members = np.empty(ptr[nu], np.int64)
+    for u in range(nu):
+        a = owners[first[u]]
+        p = ptr[u]
+        for j in range(K):
+            if keys[a, j] < n:
+                members[p] = keys[a, j]
+                p += 1
+    report = np.zeros(ptr[nu], np.bool_)
+    for t in range(cnt):
+        a = owners[t]
+        below = 0
+        for j in range(K):
+            if keys[a, j] < a:
+                below += 1
+        report[ptr[inv[t]] + below] = True
+    return grouped, ptr, members, report
+
+
 def _neighbour_tasks(rows, cols, radius: float, max_group: int):
     """Groups for joint fitting: each spot with neighbours closer than ``radius`` (px) is fitted together
     with its nearest ``max_group - 1`` of them; identical groups are fitted once.
@@ -1483,22 +1541,17 @@ def _neighbour_tasks(rows, cols, radius: float, max_group: int):
         d, idx = cKDTree(pts, balanced_tree=False, compact_nodes=False).query(pts, k=kq, distance_upper_bound=radius)
         idx = np.where(np.isfinite(d), idx, n)              # missing neighbours -> n (sorted last)
         keys = np.sort(idx, axis=1)
+    K = keys.shape[1]
+    if (n + 1.0) ** K < 2.0 ** 62:
+        # each sorted group as one integer in base n + 1 (same order as the rows), the tasks from their sort in
+        # one numba pass (the numpy steps below cost ~10x more on a frame's few hundred spots)
+        return _tasks_from_keys(keys, n)
     has = keys[:, 1] < n
     if not has.any():
         return empty
     grouped[has] = True
     keys = keys[has]
-    K = keys.shape[1]
-    if (n + 1.0) ** K < 2.0 ** 62:
-        # each sorted group as one integer in base n + 1 (same order as the rows): a 1-D unique is ~10x
-        # faster than np.unique(axis=0)
-        code = np.zeros(len(keys), np.int64)
-        for j in range(K):
-            code = code * (n + 1) + keys[:, j]
-        _, first, inv = np.unique(code, return_index=True, return_inverse=True)
-        uniq = keys[first]
-    else:
-        uniq, inv = np.unique(keys, axis=0, return_inverse=True)
+    uniq, inv = np.unique(keys, axis=0, return_inverse=True)
     inv = np.asarray(inv).ravel()
     counts = (uniq < n).sum(axis=1)
     ptr = np.zeros(len(uniq) + 1, np.int64)
