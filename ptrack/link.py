@@ -94,7 +94,15 @@ def _trackpy_link(features, search_range, memory, pos_columns):
 
 def _robust_step(d):
     """Range statistic of per-axis steps (px): 5 robust standard deviations, or 1.5x the 99th percentile of
-    |step| when a minority moves much more than the rest (stuck and drifting particles in one movie)."""
+    |step| when a minority moves much more than the rest (stuck and drifting particles in one movie).
+
+    Computed by :func:`ptrack.linknb.robust_step` (numba: numpy's median and percentile to the bit, in one call
+    instead of four numpy reductions); by numpy itself where a step is not finite."""
+    from .linknb import robust_step
+
+    d = np.ascontiguousarray(d, np.float64)
+    if len(d) and np.isfinite(d).all():
+        return float(robust_step(d))
     return max(5.0 * 1.4826 * np.median(np.abs(d - np.median(d))), 1.5 * np.percentile(np.abs(d), 99))
 
 

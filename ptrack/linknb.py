@@ -36,6 +36,8 @@ distances (which real positions do not have).
 """
 from __future__ import annotations
 
+import math
+
 import numba as nb
 import numpy as np
 
@@ -106,6 +108,57 @@ def _nearest(src, order, xs, dst, out):
                         bj = j
                     l_ -= 1
         out[i] = bj
+
+
+@nb.njit(cache=True)
+def _kth(a, k):
+    # the k-th smallest of a (a copy is partitioned)
+    return np.partition(a, k)[k]
+
+
+@nb.njit(cache=True)
+def _median(a):
+    # np.median of a 1-D float array without NaN: the middle order statistic, or the mean (a + b) / 2 of the
+    # two middle ones
+    n = a.shape[0]
+    h = n // 2
+    p = np.partition(a, h)
+    if n % 2:
+        return p[h]
+    lo = p[0]
+    for i in range(1, h):
+        lo = max(lo, p[i])
+    return (lo + p[h]) / 2.0
+
+
+@nb.njit(cache=True)
+def _percentile(a, q):
+    # np.percentile(a, q) (method "linear") of a 1-D float array without NaN, with numpy's arithmetic: virtual
+    # index (n - 1) q / 100, and its lerp between the two order statistics around it
+    n = a.shape[0]
+    v = (n - 1) * (q / 100.0)
+    if v >= n - 1:
+        return _kth(a, n - 1)
+    i = int(math.floor(v))
+    p = np.partition(a, i)
+    lo = p[i]
+    hi = p[i + 1]
+    for k in range(i + 2, n):
+        hi = min(hi, p[k])
+    t = v - i
+    diff = hi - lo
+    if t >= 0.5:
+        return hi - diff * (1.0 - t)
+    return lo + diff * t
+
+
+@nb.njit(cache=True)
+def robust_step(d):
+    """Range statistic of per-axis steps (px, 1-D float array without NaN): 5 robust standard deviations
+    (1.4826 x the median absolute deviation), or 1.5 x the 99th percentile of |d| when that is larger (a
+    minority that moves much more than the rest), to the bit as numpy's median and percentile give them."""
+    m = _median(d)
+    return max(5.0 * 1.4826 * _median(np.abs(d - m)), 1.5 * _percentile(np.abs(d), 99.0))
 
 
 @nb.njit(cache=True)

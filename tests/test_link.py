@@ -117,3 +117,25 @@ def test_nn_steps_are_mutual_nearest_neighbours(seed):
     assert len(dx) > 100
     np.testing.assert_array_equal(dx, np.concatenate(want_x))
     np.testing.assert_array_equal(dy, np.concatenate(want_y))
+
+
+def test_robust_step_is_numpys_median_and_percentile_to_the_bit():
+    # ptrack.linknb.robust_step (one numba call) against the numpy expression it replaces, with ties, zeros,
+    # heavy tails and lengths 1 to 3000 (odd and even: both medians, every percentile interpolation case)
+    from ptrack.linknb import _median, _percentile, robust_step
+
+    rng = np.random.default_rng(21)
+    for t in range(600):
+        m = int(rng.integers(1, 3000)) if t % 4 else int(rng.integers(1, 9))
+        d = rng.normal(size=m) * rng.uniform(0.01, 10)
+        if t % 3 == 0:
+            d = np.round(d, 1)
+        if t % 5 == 0:
+            d[: m // 3] = 0.0
+        if t % 7 == 0:
+            d = rng.standard_cauchy(m)
+        want = max(5.0 * 1.4826 * np.median(np.abs(d - np.median(d))), 1.5 * np.percentile(np.abs(d), 99))
+        assert robust_step(d) == want
+        assert _median(d) == np.median(d)
+        for q in (0.0, 1.0, 50.0, 99.0, 100.0):
+            assert _percentile(np.abs(d), q) == np.percentile(np.abs(d), q)
