@@ -770,13 +770,15 @@ def _ring_test(frame, bgmap, noise, sign, rows, cols, scale, out):
         for j in range(m):
             dist[i, j] = math.sqrt((i - hmax) ** 2 + (j - hmax) ** 2)
             sect[i, j] = int((math.atan2(i - hmax, j - hmax) + math.pi) / (2 * math.pi) * 8) % 8
+    sec = np.zeros(8)
+    nsec = np.zeros(8)
     for k in range(rows.shape[0]):
         s = scale[k]
         r0 = rows[k]
         c0 = cols[k]
         half = int(math.ceil(2.2 * s)) + 1
-        sec = np.zeros(8)
-        nsec = np.zeros(8)
+        sec[:] = 0.0
+        nsec[:] = 0.0
         core = 0.0
         ncore = 0
         for r in range(max(0, r0 - half), min(h, r0 + half + 1)):
