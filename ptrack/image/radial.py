@@ -614,6 +614,15 @@ def profile_centres(img, rows, cols, half, x0=None, y0=None, noise=1.0, shot: fl
     return {"x": res[:, 0], "y": res[:, 1], "var_x": res[:, 2], "var_y": res[:, 3], "ok": ok, "iterations": iters}
 
 
+def _as_n(v, n, dtype):
+    """``v`` as a contiguous 1-D array of ``n`` values of ``dtype`` (a scalar repeated n times); an array that
+    already is one is returned as it is (broadcast_to and its copy cost more than the kernels of a sparse frame)."""
+    a = np.asarray(v, dtype)
+    if a.ndim == 1 and a.shape[0] == n and a.flags.c_contiguous:
+        return a
+    return np.ascontiguousarray(np.broadcast_to(a, (n,)))
+
+
 @nb.njit(cache=True)
 def _annulus_sums(img, xc, yc, R, sums, cnt):
     # sum and pixel count of img in 1 px annuli (b = round(r)) about (xc, yc), out to R px
@@ -678,7 +687,7 @@ def image_extent(img, x0, y0, noise, rmin, rmax, k_sig: float = 4.0, gap: int | 
     ndarray of float (px)
     """
     n = len(np.atleast_1d(x0))
-    b = lambda v, t: np.ascontiguousarray(np.broadcast_to(np.asarray(v, t), (n,)))
+    b = lambda v, t: _as_n(v, n, t)
     out = np.zeros(n)
     if n:
         _extent_all(np.ascontiguousarray(img), b(x0, np.float64), b(y0, np.float64), b(noise, np.float64),
@@ -749,7 +758,7 @@ def has_dip(img, x0, y0, noise, rmax, k_sig: float = 4.0):
     ndarray of bool
     """
     n = len(np.atleast_1d(x0))
-    b = lambda v, t: np.ascontiguousarray(np.broadcast_to(np.asarray(v, t), (n,)))
+    b = lambda v, t: _as_n(v, n, t)
     out = np.zeros(n, np.bool_)
     if n:
         _dip_all(np.ascontiguousarray(img), b(x0, np.float64), b(y0, np.float64), b(noise, np.float64),

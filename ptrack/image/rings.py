@@ -43,6 +43,7 @@ import numba as nb
 import numpy as np
 
 from .peaks import local_maxima
+from .radial import _as_n
 
 __all__ = ["RING_RADII", "ring_scale", "ring_threshold", "ring_maps_candidates", "ring_evidence",
            "ring_support"]
@@ -236,7 +237,7 @@ def ring_support(J, rows, cols, radius, width, sign, noise):
         least a quarter of the strongest.
     """
     n = len(np.atleast_1d(rows))
-    b = lambda v, t: np.ascontiguousarray(np.broadcast_to(np.asarray(v, t), (n,)))
+    b = lambda v, t: _as_n(v, n, t)
     out = np.zeros(n, np.bool_)
     if n:
         _sectors(np.ascontiguousarray(J, np.float32), b(rows, np.int64), b(cols, np.int64), b(radius, np.float64),
