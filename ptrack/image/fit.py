@@ -507,6 +507,7 @@ def _eval_poisson(img, r0, nr, c0, nc, th, K, gain, offset, rvar, FX, FY, J, g, 
     f = 0.0
     rss = 0.0
     ig = 1.0 / gain
+    plain = ig == 1.0 and offset == 0.0     # (gain 1, offset 0: (v - 0) x 1 = v exactly, not computed)
     for i in range(nr):
         for j in range(nc):
             mu = th[3 * K]
@@ -523,7 +524,7 @@ def _eval_poisson(img, r0, nr, c0, nc, th, K, gain, offset, rvar, FX, FY, J, g, 
                 ds_ += N * (FX[3 * k + 2, j] * eyi + exj * FY[3 * k + 2, i])
             dm[3 * K] = 1.0
             dm[3 * K + 1] = ds_
-            d = (img[r0 + i, c0 + j] - offset) * ig
+            d = float(img[r0 + i, c0 + j]) if plain else (img[r0 + i, c0 + j] - offset) * ig
             rss += (d - mu) ** 2
             m = mu + rvar
             dd = d + rvar
@@ -560,6 +561,7 @@ def _eval_ls(img, r0, nr, c0, nc, th, K, gain, offset, FX, FY, J, g, Gx, Gy, rro
         g[a] = 0.0
     rss = 0.0
     ig = 1.0 / gain
+    plain = ig == 1.0 and offset == 0.0     # (gain 1, offset 0: (v - 0) x 1 = v exactly, not computed)
     for i in range(nr):
         for a in range(Q):
             rrow[a] = 0.0
@@ -567,7 +569,7 @@ def _eval_ls(img, r0, nr, c0, nc, th, K, gain, offset, FX, FY, J, g, Gx, Gy, rro
             mu = bg
             for k in range(K):
                 mu += th[3 * k + 2] * FX[3 * k, j] * FY[3 * k, i]
-            r = (img[r0 + i, c0 + j] - offset) * ig - mu
+            r = (float(img[r0 + i, c0 + j]) if plain else (img[r0 + i, c0 + j] - offset) * ig) - mu
             rss += r * r
             for a in range(Q):
                 rrow[a] += r * FX[a, j]
@@ -619,6 +621,7 @@ def _eval_poisson1(img, r0, nr, c0, nc, th, gain, offset, rvar, FX, FY, J, g):
     f = 0.0
     rss = 0.0
     ig = 1.0 / gain
+    plain = ig == 1.0 and offset == 0.0     # (gain 1, offset 0: (v - 0) x 1 = v exactly, not computed)
     for i in range(nr):
         eyi = ey[i]
         dyi = dyf[i]
@@ -632,7 +635,7 @@ def _eval_poisson1(img, r0, nr, c0, nc, th, gain, offset, rvar, FX, FY, J, g):
             d1 = N * exj * dyi
             d2 = e
             d4 = N * (sxf[j] * eyi + exj * syi)
-            d = (row[c0 + j] - offset) * ig
+            d = float(row[c0 + j]) if plain else (row[c0 + j] - offset) * ig
             rss += (d - mu) ** 2
             m = mu + rvar
             dd = d + rvar
@@ -711,6 +714,7 @@ def _eval_ls1(img, r0, nr, c0, nc, th, gain, offset, FX, FY, J, g, Gx, Gy, TC, T
     g4 = 0.0
     rss = 0.0
     ig = 1.0 / gain
+    plain = ig == 1.0 and offset == 0.0     # (gain 1, offset 0: (v - 0) x 1 = v exactly, not computed)
     for i in range(nr):
         q0 = 0.0
         q1 = 0.0
@@ -720,7 +724,7 @@ def _eval_ls1(img, r0, nr, c0, nc, th, gain, offset, FX, FY, J, g, Gx, Gy, TC, T
         row = img[r0 + i]
         for j in range(nc):
             mu = bg + N * ex[j] * eyi
-            r = (row[c0 + j] - offset) * ig - mu
+            r = (float(row[c0 + j]) if plain else (row[c0 + j] - offset) * ig) - mu
             rss += r * r
             q0 += r * ex[j]
             q1 += r * dx[j]
@@ -763,6 +767,7 @@ def _eval_vp1(img, r0, nr, c0, nc, th, gain, offset, FX, FY, J, g):
     pd = 0.0        # sum d
     pdd = 0.0       # sum d^2
     ig = 1.0 / gain
+    plain = ig == 1.0 and offset == 0.0     # (gain 1, offset 0: (v - 0) x 1 = v exactly, not computed)
     for i in range(nr):
         q0 = 0.0
         q1 = 0.0
@@ -771,7 +776,7 @@ def _eval_vp1(img, r0, nr, c0, nc, th, gain, offset, FX, FY, J, g):
         q4 = 0.0
         row = img[r0 + i]
         for j in range(nc):
-            d = (row[c0 + j] - offset) * ig
+            d = float(row[c0 + j]) if plain else (row[c0 + j] - offset) * ig
             q0 += d * ex[j]
             q1 += d * dx[j]
             q2 += d * sx_[j]
@@ -853,6 +858,7 @@ def _eval_ls2(img, r0, nr, c0, nc, th, gain, offset, FX, FY, J, g, Gx, Gy, TC, T
     g7 = 0.0
     rss = 0.0
     ig = 1.0 / gain
+    plain = ig == 1.0 and offset == 0.0     # (gain 1, offset 0: (v - 0) x 1 = v exactly, not computed)
     for i in range(nr):
         q0 = 0.0
         q1 = 0.0
@@ -867,7 +873,7 @@ def _eval_ls2(img, r0, nr, c0, nc, th, gain, offset, FX, FY, J, g, Gx, Gy, TC, T
         for j in range(nc):
             mu = bg + N0 * ex0[j] * e0i
             mu = mu + N1 * ex1[j] * e1i
-            r = (row[c0 + j] - offset) * ig - mu
+            r = (float(row[c0 + j]) if plain else (row[c0 + j] - offset) * ig) - mu
             rss += r * r
             q0 += r * ex0[j]
             q1 += r * dx0[j]
@@ -912,11 +918,12 @@ def _eval_vp2(img, r0, nr, c0, nc, th, gain, offset, FX, FY, J, g):
     sx1 = FX[5]
     pe0 = px0 = py0 = ps0 = pe1 = px1 = py1 = ps1 = pd = pdd = 0.0
     ig = 1.0 / gain
+    plain = ig == 1.0 and offset == 0.0     # (gain 1, offset 0: (v - 0) x 1 = v exactly, not computed)
     for i in range(nr):
         q0 = q1 = q2 = q3 = q4 = q5 = q6 = q7 = 0.0
         row = img[r0 + i]
         for j in range(nc):
-            d = (row[c0 + j] - offset) * ig
+            d = float(row[c0 + j]) if plain else (row[c0 + j] - offset) * ig
             q0 += d * ex0[j]
             q1 += d * dx0[j]
             q2 += d * sx0[j]
