@@ -240,6 +240,16 @@ def _profile_one(img, r, c, half, x0, y0, n2, gw, out):
     rad2 = (half - 0.5) ** 2
     hq = 1.0 / (half * half)
     w_bg = 1.0 / (n2 + 0.0)
+    # the pixels within the disc about the start (fixed over the iterations), in raster order
+    n_in = 0
+    pi_ = np.empty((2 * half + 1) * (2 * half + 1), np.int64)
+    pj_ = np.empty((2 * half + 1) * (2 * half + 1), np.int64)
+    for i in range(r - half, r + half + 1):
+        for j in range(c - half, c + half + 1):
+            if not (j - x0) ** 2 + (i - y0) ** 2 > rad2:
+                pi_[n_in] = i
+                pj_[n_in] = j
+                n_in += 1
     xc = x0
     yc = y0
     theta = np.zeros(npar)
@@ -267,184 +277,183 @@ def _profile_one(img, r, c, half, x0, y0, n2, gw, out):
         r0_ = r1_ = r2_ = r3_ = rx_ = ry_ = 0.0
         a00 = a10 = a11 = a20 = a21 = a22 = a30 = a31 = a32 = a33 = 0.0
         x0_ = x1_ = x2_ = x3_ = y0_ = y1_ = y2_ = y3_ = axx = axy = ayy = 0.0
-        for i in range(r - half, r + half + 1):
-            for j in range(c - half, c + half + 1):
-                if (j - x0) ** 2 + (i - y0) ** 2 > rad2:
+        for p_ in range(n_in):
+            i = pi_[p_]
+            j = pj_[p_]
+            dx = j - xc
+            dy = i - yc
+            rho = math.sqrt(dx * dx + dy * dy)
+            k0 = int(math.floor(rho)) - 1
+            m = 0.0
+            dp = 0.0
+            nz = 0
+            # (the usual case, full: rho >= 1, so no mirrored knot, and all four coefficients k0..k0 + 3
+            # inside the profile and nonzero, the four B-splines evaluated and summed as the loop below does;
+            # else that loop, which folds the mirrored knots)
+            full = False
+            if k0 >= 0 and k0 + 3 < K:
+                v0, d0 = _bspline(rho - k0)
+                v1, d1 = _bspline(rho - (k0 + 1))
+                v2, d2 = _bspline(rho - (k0 + 2))
+                v3, d3 = _bspline(rho - (k0 + 3))
+                full = not ((v0 == 0.0 and d0 == 0.0) or (v1 == 0.0 and d1 == 0.0) or
+                            (v2 == 0.0 and d2 == 0.0) or (v3 == 0.0 and d3 == 0.0))
+            if full:
+                m += theta[k0] * v0
+                dp += theta[k0] * d0
+                m += theta[k0 + 1] * v1
+                dp += theta[k0 + 1] * d1
+                m += theta[k0 + 2] * v2
+                dp += theta[k0 + 2] * d2
+                m += theta[k0 + 3] * v3
+                dp += theta[k0 + 3] * d3
+            for jj in range(k0, k0 + 4 if not full else k0):
+                v, d = _bspline(rho - jj)
+                kk = abs(jj)
+                if kk >= K or (v == 0.0 and d == 0.0):
                     continue
-                dx = j - xc
-                dy = i - yc
-                rho = math.sqrt(dx * dx + dy * dy)
-                k0 = int(math.floor(rho)) - 1
-                m = 0.0
-                dp = 0.0
-                nz = 0
-                # (the usual case, full: rho >= 1, so no mirrored knot, and all four coefficients k0..k0 + 3
-                # inside the profile and nonzero, the four B-splines evaluated and summed as the loop below does;
-                # else that loop, which folds the mirrored knots)
-                full = False
-                if k0 >= 0 and k0 + 3 < K:
-                    v0, d0 = _bspline(rho - k0)
-                    v1, d1 = _bspline(rho - (k0 + 1))
-                    v2, d2 = _bspline(rho - (k0 + 2))
-                    v3, d3 = _bspline(rho - (k0 + 3))
-                    full = not ((v0 == 0.0 and d0 == 0.0) or (v1 == 0.0 and d1 == 0.0) or
-                                (v2 == 0.0 and d2 == 0.0) or (v3 == 0.0 and d3 == 0.0))
-                if full:
-                    m += theta[k0] * v0
-                    dp += theta[k0] * d0
-                    m += theta[k0 + 1] * v1
-                    dp += theta[k0 + 1] * d1
-                    m += theta[k0 + 2] * v2
-                    dp += theta[k0 + 2] * d2
-                    m += theta[k0 + 3] * v3
-                    dp += theta[k0 + 3] * d3
-                for jj in range(k0, k0 + 4 if not full else k0):
-                    v, d = _bspline(rho - jj)
-                    kk = abs(jj)
-                    if kk >= K or (v == 0.0 and d == 0.0):
-                        continue
-                    # fold the mirrored knot onto its coefficient
-                    found = -1
-                    for q in range(nz):
-                        if idx[q] == kk:
-                            found = q
-                    if found >= 0:
-                        val[found] += v
-                    else:
-                        idx[nz] = kk
-                        val[nz] = v
-                        nz += 1
-                    m += theta[kk] * v
-                    dp += theta[kk] * d
-                # the background terms: linear parameters K..K+3 with values l0..l3
-                u = j - c
-                t = i - r
-                l0 = float(u)
-                l1 = float(t)
-                l2 = (u * u - t * t) * hq
-                l3 = u * t * hq
-                m += theta[K] * l0
-                m += theta[K + 1] * l1
-                m += theta[K + 2] * l2
-                m += theta[K + 3] * l3
-                res = float(img[i, j]) - m
-                # weights: 1 / variance, the background's n2 plus the shot noise of the image (gw per count);
-                # without shot noise (least-squares images, gw = 0) the constant 1 / n2, the same value without a
-                # division in every pixel's chain of dependent operations (~18 % of the fit)
-                wt = w_bg if gw == 0.0 else 1.0 / (n2 + gw * max(m, 0.0))
-                rss += wt * res * res
-                npix += 1
-                # derivative of the model with respect to the centre: -P'(rho) (p - centre) / rho
-                if rho > 1e-9:
-                    ddx = -dp * dx / rho
-                    ddy = -dp * dy / rho
+                # fold the mirrored knot onto its coefficient
+                found = -1
+                for q in range(nz):
+                    if idx[q] == kk:
+                        found = q
+                if found >= 0:
+                    val[found] += v
                 else:
-                    ddx = 0.0
-                    ddy = 0.0
-                res *= wt
-                ddxw = ddx * wt
-                ddyw = ddy * wt
-                # the normal equations' sums, each entry the same products in the same pixel order as a full
-                # matrix's lower triangle (the Cholesky reads no other; mirrored below for the LU fallback).
-                # Spline rows (indices < K, scattered by the knots) in A, their background and centre entries
-                # in adjacent columns; the background rows' other entries, whose indices are fixed, and the
-                # centre's in scalars (a scattered update through memory costs several times a register add)
-                w0 = l0 * wt
-                w1 = l1 * wt
-                w2 = l2 * wt
-                w3 = l3 * wt
-                if full:
-                    # the same sums as the loop below, unrolled over the four consecutive coefficients
-                    a0 = A[k0]
-                    a1 = A[k0 + 1]
-                    a2 = A[k0 + 2]
-                    a3 = A[k0 + 3]
-                    rhs[k0, 0] += v0 * res
-                    rhs[k0 + 1, 0] += v1 * res
-                    rhs[k0 + 2, 0] += v2 * res
-                    rhs[k0 + 3, 0] += v3 * res
-                    vp0 = v0 * wt
-                    vp1 = v1 * wt
-                    vp2 = v2 * wt
-                    vp3 = v3 * wt
-                    a0[k0] += vp0 * v0
-                    a1[k0] += vp1 * v0
-                    a1[k0 + 1] += vp1 * v1
-                    a2[k0] += vp2 * v0
-                    a2[k0 + 1] += vp2 * v1
-                    a2[k0 + 2] += vp2 * v2
-                    a3[k0] += vp3 * v0
-                    a3[k0 + 1] += vp3 * v1
-                    a3[k0 + 2] += vp3 * v2
-                    a3[k0 + 3] += vp3 * v3
-                    a0[K] += w0 * v0
-                    a0[K + 1] += w1 * v0
-                    a0[K + 2] += w2 * v0
-                    a0[K + 3] += w3 * v0
-                    a0[IX] += vp0 * ddx
-                    a0[IY] += vp0 * ddy
-                    a1[K] += w0 * v1
-                    a1[K + 1] += w1 * v1
-                    a1[K + 2] += w2 * v1
-                    a1[K + 3] += w3 * v1
-                    a1[IX] += vp1 * ddx
-                    a1[IY] += vp1 * ddy
-                    a2[K] += w0 * v2
-                    a2[K + 1] += w1 * v2
-                    a2[K + 2] += w2 * v2
-                    a2[K + 3] += w3 * v2
-                    a2[IX] += vp2 * ddx
-                    a2[IY] += vp2 * ddy
-                    a3[K] += w0 * v3
-                    a3[K + 1] += w1 * v3
-                    a3[K + 2] += w2 * v3
-                    a3[K + 3] += w3 * v3
-                    a3[IX] += vp3 * ddx
-                    a3[IY] += vp3 * ddy
-                for p in range(nz):
-                    ip = idx[p]
-                    v = val[p]
-                    rhs[ip, 0] += v * res
-                    vp = v * wt
-                    for q in range(nz):
-                        iq = idx[q]
-                        if iq <= ip:
-                            A[ip, iq] += vp * val[q]
-                    # the background rows' spline entries (K + a, ip), summed in the spline row's adjacent
-                    # columns K..K+3 beside its centre entries (mirrored to the lower triangle below)
-                    A[ip, K] += w0 * v
-                    A[ip, K + 1] += w1 * v
-                    A[ip, K + 2] += w2 * v
-                    A[ip, K + 3] += w3 * v
-                    A[ip, IX] += vp * ddx
-                    A[ip, IY] += vp * ddy
-                r0_ += l0 * res
-                a00 += w0 * l0
-                x0_ += w0 * ddx
-                y0_ += w0 * ddy
-                r1_ += l1 * res
-                a10 += w1 * l0
-                a11 += w1 * l1
-                x1_ += w1 * ddx
-                y1_ += w1 * ddy
-                r2_ += l2 * res
-                a20 += w2 * l0
-                a21 += w2 * l1
-                a22 += w2 * l2
-                x2_ += w2 * ddx
-                y2_ += w2 * ddy
-                r3_ += l3 * res
-                a30 += w3 * l0
-                a31 += w3 * l1
-                a32 += w3 * l2
-                a33 += w3 * l3
-                x3_ += w3 * ddx
-                y3_ += w3 * ddy
-                rx_ += ddx * res
-                ry_ += ddy * res
-                axx += ddxw * ddx
-                axy += ddxw * ddy
-                ayy += ddyw * ddy
+                    idx[nz] = kk
+                    val[nz] = v
+                    nz += 1
+                m += theta[kk] * v
+                dp += theta[kk] * d
+            # the background terms: linear parameters K..K+3 with values l0..l3
+            u = j - c
+            t = i - r
+            l0 = float(u)
+            l1 = float(t)
+            l2 = (u * u - t * t) * hq
+            l3 = u * t * hq
+            m += theta[K] * l0
+            m += theta[K + 1] * l1
+            m += theta[K + 2] * l2
+            m += theta[K + 3] * l3
+            res = float(img[i, j]) - m
+            # weights: 1 / variance, the background's n2 plus the shot noise of the image (gw per count);
+            # without shot noise (least-squares images, gw = 0) the constant 1 / n2, the same value without a
+            # division in every pixel's chain of dependent operations (~18 % of the fit)
+            wt = w_bg if gw == 0.0 else 1.0 / (n2 + gw * max(m, 0.0))
+            rss += wt * res * res
+            npix += 1
+            # derivative of the model with respect to the centre: -P'(rho) (p - centre) / rho
+            if rho > 1e-9:
+                ddx = -dp * dx / rho
+                ddy = -dp * dy / rho
+            else:
+                ddx = 0.0
+                ddy = 0.0
+            res *= wt
+            ddxw = ddx * wt
+            ddyw = ddy * wt
+            # the normal equations' sums, each entry the same products in the same pixel order as a full
+            # matrix's lower triangle (the Cholesky reads no other; mirrored below for the LU fallback).
+            # Spline rows (indices < K, scattered by the knots) in A, their background and centre entries
+            # in adjacent columns; the background rows' other entries, whose indices are fixed, and the
+            # centre's in scalars (a scattered update through memory costs several times a register add)
+            w0 = l0 * wt
+            w1 = l1 * wt
+            w2 = l2 * wt
+            w3 = l3 * wt
+            if full:
+                # the same sums as the loop below, unrolled over the four consecutive coefficients
+                a0 = A[k0]
+                a1 = A[k0 + 1]
+                a2 = A[k0 + 2]
+                a3 = A[k0 + 3]
+                rhs[k0, 0] += v0 * res
+                rhs[k0 + 1, 0] += v1 * res
+                rhs[k0 + 2, 0] += v2 * res
+                rhs[k0 + 3, 0] += v3 * res
+                vp0 = v0 * wt
+                vp1 = v1 * wt
+                vp2 = v2 * wt
+                vp3 = v3 * wt
+                a0[k0] += vp0 * v0
+                a1[k0] += vp1 * v0
+                a1[k0 + 1] += vp1 * v1
+                a2[k0] += vp2 * v0
+                a2[k0 + 1] += vp2 * v1
+                a2[k0 + 2] += vp2 * v2
+                a3[k0] += vp3 * v0
+                a3[k0 + 1] += vp3 * v1
+                a3[k0 + 2] += vp3 * v2
+                a3[k0 + 3] += vp3 * v3
+                a0[K] += w0 * v0
+                a0[K + 1] += w1 * v0
+                a0[K + 2] += w2 * v0
+                a0[K + 3] += w3 * v0
+                a0[IX] += vp0 * ddx
+                a0[IY] += vp0 * ddy
+                a1[K] += w0 * v1
+                a1[K + 1] += w1 * v1
+                a1[K + 2] += w2 * v1
+                a1[K + 3] += w3 * v1
+                a1[IX] += vp1 * ddx
+                a1[IY] += vp1 * ddy
+                a2[K] += w0 * v2
+                a2[K + 1] += w1 * v2
+                a2[K + 2] += w2 * v2
+                a2[K + 3] += w3 * v2
+                a2[IX] += vp2 * ddx
+                a2[IY] += vp2 * ddy
+                a3[K] += w0 * v3
+                a3[K + 1] += w1 * v3
+                a3[K + 2] += w2 * v3
+                a3[K + 3] += w3 * v3
+                a3[IX] += vp3 * ddx
+                a3[IY] += vp3 * ddy
+            for p in range(nz):
+                ip = idx[p]
+                v = val[p]
+                rhs[ip, 0] += v * res
+                vp = v * wt
+                for q in range(nz):
+                    iq = idx[q]
+                    if iq <= ip:
+                        A[ip, iq] += vp * val[q]
+                # the background rows' spline entries (K + a, ip), summed in the spline row's adjacent
+                # columns K..K+3 beside its centre entries (mirrored to the lower triangle below)
+                A[ip, K] += w0 * v
+                A[ip, K + 1] += w1 * v
+                A[ip, K + 2] += w2 * v
+                A[ip, K + 3] += w3 * v
+                A[ip, IX] += vp * ddx
+                A[ip, IY] += vp * ddy
+            r0_ += l0 * res
+            a00 += w0 * l0
+            x0_ += w0 * ddx
+            y0_ += w0 * ddy
+            r1_ += l1 * res
+            a10 += w1 * l0
+            a11 += w1 * l1
+            x1_ += w1 * ddx
+            y1_ += w1 * ddy
+            r2_ += l2 * res
+            a20 += w2 * l0
+            a21 += w2 * l1
+            a22 += w2 * l2
+            x2_ += w2 * ddx
+            y2_ += w2 * ddy
+            r3_ += l3 * res
+            a30 += w3 * l0
+            a31 += w3 * l1
+            a32 += w3 * l2
+            a33 += w3 * l3
+            x3_ += w3 * ddx
+            y3_ += w3 * ddy
+            rx_ += ddx * res
+            ry_ += ddy * res
+            axx += ddxw * ddx
+            axy += ddxw * ddy
+            ayy += ddyw * ddy
         for q in range(K):
             for a in range(4):
                 A[K + a, q] = A[q, K + a]
