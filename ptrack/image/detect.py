@@ -752,6 +752,20 @@ def _scale_at_full(b1s, b2s, ivs, sign, rows, cols):
 
 
 @nb.njit(cache=True)
+def _amp_at(b1s, b2s, sign, rows, cols):
+    """The band-passed height ``sign (b1 - b2)`` (float32, as the frame's blurs) of every scale (rows of the
+    result) at each pixel (columns): what indexing each pair of blurs at the pixels gives, in one pass."""
+    n = rows.shape[0]
+    out = np.empty((len(b1s), n), np.float32)
+    for i in range(len(b1s)):
+        b1 = b1s[i]
+        b2 = b2s[i]
+        for k in range(n):
+            out[i, k] = (b1[rows[k], cols[k]] - b2[rows[k], cols[k]]) * sign
+    return out
+
+
+@nb.njit(cache=True)
 def _ring_test(frame, bgmap, noise, sign, rows, cols, scale, out):
     # an image with a hole: the annulus 0.7 s .. 2.2 s is brighter (polarity applied) than the core
     # (<= 0.5 s) in every one of 8 sectors, beyond 3 noise standard errors, and no sector is below 40 %
@@ -1091,8 +1105,7 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
     # size of each particle: the scale of the largest band-passed response (the DoG with a fixed ratio
     # is scale-normalised, so its response to a Gaussian spot of width a peaks near s = a), not the
     # scale of the best SNR (which favours fine scales when the background has coarse structure)
-    amp = np.array([blurs[s][rows, cols] - blurs[_SURROUND * s][rows, cols] for s in scales]) * polarity \
-        if len(rows) else np.zeros((len(scales), 0))
+    amp = _amp_at(b1s, b2s, np.float32(polarity), rows, cols) if len(rows) else np.zeros((len(scales), 0))
     size_k = np.argmax(amp, axis=0) if len(rows) else np.zeros(0, int)
     sc = np.asarray(scales)[size_k]
     ring = np.zeros(len(rows), np.bool_)
