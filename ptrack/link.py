@@ -115,9 +115,11 @@ def _nn_steps(frames, x, y, max_pairs: int = 20000):
     """
     from .linknb import nn_steps
 
-    order = np.argsort(frames, kind="stable")
-    fs = frames[order]
-    pts = np.column_stack((x[order], y[order])).astype(np.float64)
+    if len(frames) > 1 and not (frames[1:] >= frames[:-1]).all():
+        order = np.argsort(frames, kind="stable")
+        frames, x, y = frames[order], x[order], y[order]
+    fs = frames             # in frame order (a table from locate or link already is: no sort)
+    pts = np.column_stack((x, y)).astype(np.float64)
     ufr, start = np.unique(fs, return_index=True)
     end = np.r_[start[1:], len(fs)]
     follows = ufr[1:] == ufr[:-1] + 1
@@ -229,7 +231,8 @@ def link(features: pd.DataFrame, search_range: float | None = None, memory: int 
         if three_d:
             zsr = z_search_range / pixel_size if z_search_range is not None else float(max(robust("z_px") + 1.0, 2.0))
             new_rng = (zsr, new_sr, new_sr)
-        if np.allclose(new_rng, rng_, rtol=0.05):
+        # (np.allclose's rule, |new - old| <= 1e-8 + 0.05 |old| on every axis, without its overhead)
+        if all(abs(a - b) <= 1e-8 + 0.05 * abs(b) for a, b in zip(new_rng, rng_)):
             break
         pid = _trackpy_link(sample, new_rng, memory, pos)
         rng_ = new_rng
