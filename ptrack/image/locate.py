@@ -512,7 +512,7 @@ def _locate_columns(frame, snr=None, gain=1.0, offset=0.0, read_noise=0.0, brigh
                         offset=offset if poisson else 0.0, read_noise=read_noise, poisson=poisson,
                         amps=det["snr"][q], split=poisson)   # brightfield blobs with halos are not Gaussian: no split
         idx = q[fit["index"]]
-        first = np.arange(len(q))
+        first = slice(0, len(q))        # the fits of the class's own spots (split halves follow them)
         x[q], y[q], vx[q], vy[q] = fit["x"][first], fit["y"][first], fit["var_x"][first], fit["var_y"][first]
         photons[q], bgp[q], size[q] = fit["photons"][first], fit["bg"][first], fit["s"][first]
         ecc[q], ok[q] = fit["ecc"][first], fit["ok"][first]
