@@ -1005,6 +1005,15 @@ _VARPRO = True
 #: to the alternating series' sum (False: taken whole)
 _OSC_SUM = True
 _OSC_COS2 = 0.9
+#: least-squares steps that continue the last one along a line (within acos(sqrt(_AIT_COS2)), ~8 deg) at a steady
+#: ratio rho in _AIT_RHO (the last ratio within 10 %) are extended to the geometric series' sum, 1 / (1 - rho) of
+#: them (Aitken): Gauss-Newton converges only linearly on images a Gaussian does not describe exactly (halos,
+#: overlapping pairs), at rho ~0.85 on the real movie's slowest pairs, and stops one step short of a sum ~6 steps
+#: long. Against fits converged to 1e-9 px this brings the real movie's joint fits from a max 0.32 to 0.12 SE
+#: (isolated 1.0 to 0.73 SE) in fewer iterations (False: taken as they are)
+_AIT_SUM = True
+_AIT_COS2 = 0.98
+_AIT_RHO = (0.3, 0.95)
 
 
 @nb.njit(cache=True, inline="always")
@@ -1046,6 +1055,7 @@ def _lm(img, r0, nr, c0, nc, th, K, sigma0, gain, offset, rvar, poisson, max_ite
     trial = w[8]
     prev = w[17]
     has_prev = False
+    rho_last = -10.0        # the ratio of the last two steps along one line (_AIT_SUM), -10: none
     npix = nr * nc
     f, rss = _evaluate(img, r0, nr, c0, nc, th, K, gain, offset, rvar, poisson, w, J, g)
     lam = 1e-3
@@ -1098,12 +1108,24 @@ def _lm(img, r0, nr, c0, nc, th, K, sigma0, gain, offset, rvar, poisson, max_ite
                         dot += step[a] * prev[a]
                         pp += prev[a] * prev[a]
                         ss += step[a] * step[a]
+                rho_now = -10.0
                 if pp > 0.0 and dot < 0.0 and dot * dot >= _OSC_COS2 * pp * ss:
                     rho = dot / pp
                     if rho > -1.0:
                         fct = 1.0 / (1.0 - rho)
                         for a in range(P):
                             step[a] *= fct
+                elif _AIT_SUM and pp > 0.0 and dot > 0.0 and dot * dot >= _AIT_COS2 * pp * ss:
+                    # the same series converging from one side (see _AIT_SUM): extended, unless this step already
+                    # ends the fit; a trial the objective refuses falls back to the step itself (try 1)
+                    rho = dot / pp
+                    if (not raw_small and _AIT_RHO[0] <= rho <= _AIT_RHO[1]
+                            and abs(rho - rho_last) <= 0.1 * rho):
+                        fct = 1.0 / (1.0 - rho)
+                        for a in range(P):
+                            step[a] *= fct
+                    rho_now = rho
+                rho_last = rho_now
             bad = False
             small = raw_small
             for a in range(P):
