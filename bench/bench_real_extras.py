@@ -88,22 +88,19 @@ def main(argv=None):
 
     from ptrack.link import link
     from ptrack.image.detect import FALSE_ALARM_RATE
-    from ptrack.locate import batch, locate
+    from ptrack.locate import batch
 
     trackpy.quiet()
     paths = sorted((REAL / "frames").glob("*.png"))
-    im = cv2.imread(str(REAL / "frames" / "T76S3F00001.png"), cv2.IMREAD_UNCHANGED)
+    frames = [cv2.imread(str(q), cv2.IMREAD_UNCHANGED) for q in paths]
+    im = frames[0]                                  # T76S3F00001.png, the reference's frame
     ref = pd.read_csv(REAL / "reference" / "trackpy_locate_frame0.csv")[["x", "y"]].to_numpy()
-    df = locate(im)
-    # persistence: the whole movie located and linked as ptrack track does; a false detection (noise) does not
-    # come back at the same place in the next frames, a particle (or a speck stuck on the glass) does
-    movie = link(batch([cv2.imread(str(q), cv2.IMREAD_UNCHANGED) for q in paths]))
-    first = movie[movie["frame"] == 0]
-    n_frames = movie.groupby("particle")["frame"].nunique()
-    from scipy.spatial import cKDTree as _T
-
-    d0, k0 = _T(first[["x_px", "y_px"]].to_numpy()).query(df[["x_px", "y_px"]].to_numpy())
-    track_len = np.where(d0 < 1e-6, n_frames.reindex(first["particle"].to_numpy()).to_numpy()[k0], 0)
+    # the whole movie located and linked as ptrack track does (frame 0's rows: locate(im) with no option); for
+    # persistence: a false detection (noise) does not come back at the same place in the next frames, a
+    # particle (or a speck stuck on the glass) does
+    movie = link(batch(frames))
+    df = movie[movie["frame"] == 0].reset_index(drop=True)
+    track_len = movie.groupby("particle")["frame"].nunique().reindex(df["particle"].to_numpy()).to_numpy()
     xy = df[["x_px", "y_px"]].to_numpy()
     tp = trackpy.locate(255 - im, diameter=9, minmass=0, separation=5)
     cls = classify(xy, ref, tp[["x", "y"]].to_numpy(), tp["mass"].to_numpy())

@@ -108,20 +108,17 @@ def _robust_step(d):
 
 def _nn_steps(frames, x, y, max_pairs: int = 20000):
     """Per-axis steps (px) of mutual nearest neighbours between consecutive frames: a first look at the
-    step distribution without a search range (no link); empty when there are too few.
+    step distribution without a search range (no link); empty when there are too few. ``frames`` in frame
+    order (:func:`link`'s table, sorted there).
 
     The pairs come from :func:`ptrack.linknb.nn_steps` (numba, exact nearest neighbours; two cKDTree queries
     per pair of frames cost ~0.1 ms each, mostly call overhead, more than the rest of a sparse frame's link).
     """
     from .linknb import nn_steps
 
-    if len(frames) > 1 and not (frames[1:] >= frames[:-1]).all():
-        order = np.argsort(frames, kind="stable")
-        frames, x, y = frames[order], x[order], y[order]
-    fs = frames             # in frame order (a table from locate or link already is: no sort)
     pts = np.column_stack((x, y)).astype(np.float64)
-    ufr, start = np.unique(fs, return_index=True)
-    end = np.r_[start[1:], len(fs)]
+    ufr, start = np.unique(frames, return_index=True)
+    end = np.r_[start[1:], len(frames)]
     follows = ufr[1:] == ufr[:-1] + 1
     dx, dy = nn_steps(pts, start.astype(np.int64), end.astype(np.int64), follows, int(max_pairs))
     if len(dx) < 10:

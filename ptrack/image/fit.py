@@ -164,6 +164,13 @@ def _pixel_loglik(d, mu, rvar, poisson):
 
 
 @nb.njit(cache=True, inline="always")
+def _photons(v, offset, ig, plain):
+    # a pixel's counts as photons, (v - offset) / gain with ig = 1 / gain; plain (gain 1, offset 0): the value
+    # itself, (v - 0) x 1 = v exactly, without the subtraction and product
+    return float(v) if plain else (v - offset) * ig
+
+
+@nb.njit(cache=True, inline="always")
 def _border_mean(img, r0, nr, c0, nc, gain, offset):
     # mean photons on the border pixels of the window rows r0..r0+nr-1, cols c0..c0+nc-1: the starting
     # background of the single and the joint fit
@@ -507,7 +514,7 @@ def _eval_poisson(img, r0, nr, c0, nc, th, K, gain, offset, rvar, FX, FY, J, g, 
     f = 0.0
     rss = 0.0
     ig = 1.0 / gain
-    plain = ig == 1.0 and offset == 0.0     # (gain 1, offset 0: (v - 0) x 1 = v exactly, not computed)
+    plain = ig == 1.0 and offset == 0.0
     for i in range(nr):
         for j in range(nc):
             mu = th[3 * K]
@@ -524,7 +531,7 @@ def _eval_poisson(img, r0, nr, c0, nc, th, K, gain, offset, rvar, FX, FY, J, g, 
                 ds_ += N * (FX[3 * k + 2, j] * eyi + exj * FY[3 * k + 2, i])
             dm[3 * K] = 1.0
             dm[3 * K + 1] = ds_
-            d = float(img[r0 + i, c0 + j]) if plain else (img[r0 + i, c0 + j] - offset) * ig
+            d = _photons(img[r0 + i, c0 + j], offset, ig, plain)
             rss += (d - mu) ** 2
             m = mu + rvar
             dd = d + rvar
@@ -561,7 +568,7 @@ def _eval_ls(img, r0, nr, c0, nc, th, K, gain, offset, FX, FY, J, g, Gx, Gy, rro
         g[a] = 0.0
     rss = 0.0
     ig = 1.0 / gain
-    plain = ig == 1.0 and offset == 0.0     # (gain 1, offset 0: (v - 0) x 1 = v exactly, not computed)
+    plain = ig == 1.0 and offset == 0.0
     for i in range(nr):
         for a in range(Q):
             rrow[a] = 0.0
@@ -569,7 +576,7 @@ def _eval_ls(img, r0, nr, c0, nc, th, K, gain, offset, FX, FY, J, g, Gx, Gy, rro
             mu = bg
             for k in range(K):
                 mu += th[3 * k + 2] * FX[3 * k, j] * FY[3 * k, i]
-            r = (float(img[r0 + i, c0 + j]) if plain else (img[r0 + i, c0 + j] - offset) * ig) - mu
+            r = _photons(img[r0 + i, c0 + j], offset, ig, plain) - mu
             rss += r * r
             for a in range(Q):
                 rrow[a] += r * FX[a, j]
@@ -621,7 +628,7 @@ def _eval_poisson1(img, r0, nr, c0, nc, th, gain, offset, rvar, FX, FY, J, g):
     f = 0.0
     rss = 0.0
     ig = 1.0 / gain
-    plain = ig == 1.0 and offset == 0.0     # (gain 1, offset 0: (v - 0) x 1 = v exactly, not computed)
+    plain = ig == 1.0 and offset == 0.0
     for i in range(nr):
         eyi = ey[i]
         dyi = dyf[i]
@@ -635,7 +642,7 @@ def _eval_poisson1(img, r0, nr, c0, nc, th, gain, offset, rvar, FX, FY, J, g):
             d1 = N * exj * dyi
             d2 = e
             d4 = N * (sxf[j] * eyi + exj * syi)
-            d = float(row[c0 + j]) if plain else (row[c0 + j] - offset) * ig
+            d = _photons(row[c0 + j], offset, ig, plain)
             rss += (d - mu) ** 2
             m = mu + rvar
             dd = d + rvar
@@ -714,7 +721,7 @@ def _eval_ls1(img, r0, nr, c0, nc, th, gain, offset, FX, FY, J, g, Gx, Gy, TC, T
     g4 = 0.0
     rss = 0.0
     ig = 1.0 / gain
-    plain = ig == 1.0 and offset == 0.0     # (gain 1, offset 0: (v - 0) x 1 = v exactly, not computed)
+    plain = ig == 1.0 and offset == 0.0
     for i in range(nr):
         q0 = 0.0
         q1 = 0.0
@@ -724,7 +731,7 @@ def _eval_ls1(img, r0, nr, c0, nc, th, gain, offset, FX, FY, J, g, Gx, Gy, TC, T
         row = img[r0 + i]
         for j in range(nc):
             mu = bg + N * ex[j] * eyi
-            r = (float(row[c0 + j]) if plain else (row[c0 + j] - offset) * ig) - mu
+            r = _photons(row[c0 + j], offset, ig, plain) - mu
             rss += r * r
             q0 += r * ex[j]
             q1 += r * dx[j]
@@ -767,7 +774,7 @@ def _eval_vp1(img, r0, nr, c0, nc, th, gain, offset, FX, FY, J, g):
     pd = 0.0        # sum d
     pdd = 0.0       # sum d^2
     ig = 1.0 / gain
-    plain = ig == 1.0 and offset == 0.0     # (gain 1, offset 0: (v - 0) x 1 = v exactly, not computed)
+    plain = ig == 1.0 and offset == 0.0
     for i in range(nr):
         q0 = 0.0
         q1 = 0.0
@@ -776,7 +783,7 @@ def _eval_vp1(img, r0, nr, c0, nc, th, gain, offset, FX, FY, J, g):
         q4 = 0.0
         row = img[r0 + i]
         for j in range(nc):
-            d = float(row[c0 + j]) if plain else (row[c0 + j] - offset) * ig
+            d = _photons(row[c0 + j], offset, ig, plain)
             q0 += d * ex[j]
             q1 += d * dx[j]
             q2 += d * sx_[j]
@@ -858,7 +865,7 @@ def _eval_ls2(img, r0, nr, c0, nc, th, gain, offset, FX, FY, J, g, Gx, Gy, TC, T
     g7 = 0.0
     rss = 0.0
     ig = 1.0 / gain
-    plain = ig == 1.0 and offset == 0.0     # (gain 1, offset 0: (v - 0) x 1 = v exactly, not computed)
+    plain = ig == 1.0 and offset == 0.0
     for i in range(nr):
         q0 = 0.0
         q1 = 0.0
@@ -873,7 +880,7 @@ def _eval_ls2(img, r0, nr, c0, nc, th, gain, offset, FX, FY, J, g, Gx, Gy, TC, T
         for j in range(nc):
             mu = bg + N0 * ex0[j] * e0i
             mu = mu + N1 * ex1[j] * e1i
-            r = (float(row[c0 + j]) if plain else (row[c0 + j] - offset) * ig) - mu
+            r = _photons(row[c0 + j], offset, ig, plain) - mu
             rss += r * r
             q0 += r * ex0[j]
             q1 += r * dx0[j]
@@ -918,12 +925,12 @@ def _eval_vp2(img, r0, nr, c0, nc, th, gain, offset, FX, FY, J, g):
     sx1 = FX[5]
     pe0 = px0 = py0 = ps0 = pe1 = px1 = py1 = ps1 = pd = pdd = 0.0
     ig = 1.0 / gain
-    plain = ig == 1.0 and offset == 0.0     # (gain 1, offset 0: (v - 0) x 1 = v exactly, not computed)
+    plain = ig == 1.0 and offset == 0.0
     for i in range(nr):
         q0 = q1 = q2 = q3 = q4 = q5 = q6 = q7 = 0.0
         row = img[r0 + i]
         for j in range(nc):
-            d = float(row[c0 + j]) if plain else (row[c0 + j] - offset) * ig
+            d = _photons(row[c0 + j], offset, ig, plain)
             q0 += d * ex0[j]
             q1 += d * dx0[j]
             q2 += d * sx0[j]
