@@ -50,8 +50,11 @@ ADAPTIVE_STOP = 0.3
 ADAPTIVE_STEP = 0.8
 
 
-def _trackpy_link(features, search_range, memory, pos_columns):
-    """Trajectory ids (int64, aligned with ``features``' rows, which are in frame order) by trackpy's rules.
+def _trackpy_link(frames, positions, search_range, memory, pos_columns):
+    """Trajectory ids (int64, aligned with the rows, which are in frame order) by trackpy's rules.
+
+    ``frames``: each row's frame number; ``positions``: (n, d) float64, the columns ``pos_columns`` (px) in
+    that order (the arrays once, not the table: each column read from a table costs ~10-30 us).
 
     The fast path is :func:`ptrack.linknb.link_ids` (numba; the same partition into trajectories as
     ``trackpy.link`` with ``adaptive_stop`` = :data:`ADAPTIVE_STOP`, ``adaptive_step`` =
@@ -66,15 +69,14 @@ def _trackpy_link(features, search_range, memory, pos_columns):
 
     from .linknb import link_ids
 
-    pid = link_ids(features["frame"].to_numpy(), np.column_stack([features[c].to_numpy(float) for c in pos_columns]),
-                   search_range, memory, ADAPTIVE_STOP, ADAPTIVE_STEP)
+    pid = link_ids(frames, positions, search_range, memory, ADAPTIVE_STOP, ADAPTIVE_STEP)
     if pid is not None:
         return pid
     import trackpy
 
     trackpy.quiet()
     cols = ["frame", *pos_columns]
-    small = pd.DataFrame({c: features[c].to_numpy() for c in cols})
+    small = pd.DataFrame(dict(zip(cols, (frames, *positions.T))))
     was = gc.isenabled()
     gc.disable()
     try:
@@ -172,7 +174,9 @@ def link(features: pd.DataFrame, search_range: float | None = None, memory: int 
         if pixel_size is None:
             raise UserError("3D linking needs the pixel size", "give --pixel-size")
         feats = feats[np.isfinite(feats["z"].to_numpy())].reset_index(drop=True)
-        feats["z_px"] = feats["z"] / pixel_size
+    # the columns once, as arrays: frame, and the positions y, x (px) (and z / pixel size first in 3D)
+    fr = feats["frame"].to_numpy()
+    xy = np.column_stack([feats["y_px"].to_numpy(float), feats["x_px"].to_numpy(float)])
     # The refined range is NOT capped by the particle spacing: a range shorter than the longest
     # steps drops exactly those steps and biases D low (in 2D the steps beyond 2.5 step standard
     # deviations carry 18 % of the MSD); trackpy's adaptive search shrinks the range only inside
@@ -183,7 +187,7 @@ def link(features: pd.DataFrame, search_range: float | None = None, memory: int 
         # first range from the steps of mutual nearest neighbours between consecutive frames (no range
         # needed): the refinement below then usually confirms it after one link instead of growing it
         # over several; without such steps, from the typical nearest-neighbour distance
-        ndx, ndy = _nn_steps(feats["frame"].to_numpy(), feats["x_px"].to_numpy(float), feats["y_px"].to_numpy(float))
+        ndx, ndy = _nn_steps(fr, xy[:, 1], xy[:, 0])
         if len(ndx):
             sr = float(np.clip(max(_robust_step(ndx), _robust_step(ndy)) + 1.0, 3.0, cap))
         else:
@@ -194,34 +198,35 @@ def link(features: pd.DataFrame, search_range: float | None = None, memory: int 
         zsr = z_search_range / pixel_size if z_search_range is not None else max(4.0 * sr, 1.0)
         pos = ["z_px", "y_px", "x_px"]
         rng_ = (zsr, sr, sr)
+        xy = np.column_stack([feats["z"].to_numpy(float) / pixel_size, xy])
     # the search range is estimated on the first RANGE_FRAMES frames (more when they hold few
     # localisations), then the whole movie is linked once with it
-    fr = feats["frame"].to_numpy()
     ufr = np.unique(fr)
     estimate = search_range is None or (three_d and z_search_range is None)
+    fr_s, xy_s = fr, xy
     if estimate and len(ufr) > RANGE_FRAMES:
         counts = np.cumsum(np.bincount(np.searchsorted(ufr, fr), minlength=len(ufr)))
         n_est = max(RANGE_FRAMES, int(np.searchsorted(counts, RANGE_MIN_FEATURES)) + 1)
-        sample = feats[fr <= ufr[min(n_est, len(ufr)) - 1]] if n_est < len(ufr) else feats
-    else:
-        sample = feats
-    pid = _trackpy_link(sample, rng_, memory, pos)
+        if n_est < len(ufr):
+            m = fr <= ufr[min(n_est, len(ufr)) - 1]
+            fr_s, xy_s = fr[m], xy[m]
+    pid = _trackpy_link(fr_s, xy_s, rng_, memory, pos)
     # refine (a few rounds): 5 robust standard deviations of the measured steps per axis, +1 px
     # for localisation error; a range cut short by the first guess under-estimates the steps, so
     # repeat until the range stops growing.
     for _ in range(4):
         if not estimate:
             break
-        order = np.lexsort((sample["frame"].to_numpy(), pid))
+        order = np.lexsort((fr_s, pid))
         p_s = pid[order]
-        f_s = sample["frame"].to_numpy()[order]
+        f_s = fr_s[order]
         same = p_s[1:] == p_s[:-1]
         step = (f_s[1:] - f_s[:-1])[same]
         if same.sum() < 10:
             break
 
         def robust(col):
-            return _robust_step(np.diff(sample[col].to_numpy()[order])[same] / np.sqrt(step))
+            return _robust_step(np.diff(xy_s[:, pos.index(col)][order])[same] / np.sqrt(step))
         s = max(robust("x_px"), robust("y_px"))
         new_sr = float(np.clip(s + 1.0, 3.0, cap)) if search_range is None else sr
         new_rng = (new_sr, new_sr)
@@ -231,15 +236,12 @@ def link(features: pd.DataFrame, search_range: float | None = None, memory: int 
         # (np.allclose's rule, |new - old| <= 1e-8 + 0.05 |old| on every axis, without its overhead)
         if all(abs(a - b) <= 1e-8 + 0.05 * abs(b) for a, b in zip(new_rng, rng_)):
             break
-        pid = _trackpy_link(sample, new_rng, memory, pos)
+        pid = _trackpy_link(fr_s, xy_s, new_rng, memory, pos)
         rng_ = new_rng
-    if len(sample) < len(feats):
-        pid = _trackpy_link(feats, rng_, memory, pos)
+    if len(fr_s) < len(fr):
+        pid = _trackpy_link(fr, xy, rng_, memory, pos)
     linked = feats
     linked["particle"] = pid
-    extra = [c for c in ("z_px",) if c in linked.columns and c not in features.columns]
-    if extra:
-        linked = linked.drop(columns=extra)
     linked.attrs["link"] = {"search_range_px": float(rng_[-1]), "memory": int(memory)}
     if three_d:
         linked.attrs["link"]["z_search_range_m"] = float(rng_[0] * pixel_size)
