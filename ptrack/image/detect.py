@@ -798,7 +798,7 @@ def _ring_test(frame, bgmap, noise, sign, rows, cols, scale, out):
         for r in range(max(0, r0 - half), min(h, r0 + half + 1)):
             for c in range(max(0, c0 - half), min(w, c0 + half + 1)):
                 d = dist[r - r0 + hmax, c - c0 + hmax]
-                v = sign * (frame[r, c] - bgmap[r, c])
+                v = sign * (np.float32(frame[r, c]) - bgmap[r, c])     # (the frame's float32 value)
                 if d <= max(0.5 * s, 1.0):
                     core += v
                     ncore += 1
@@ -949,26 +949,34 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
     if not scales or min(scales) <= 0:
         raise UserError(f"scales {scales} must be positive", "give spot widths in px")
     u = false_alarm_threshold(scales, float(rate)) if snr is None else float(snr)
-    # the frame as float32 once (the maps, the ring tests and the ring maps read it too)
     pool = cache.setdefault("blur_pool", {}) if cache is not None else None
     if pool is not None and "owned" not in pool and _RECYCLE_BYTES > 0:
         pool["owned"] = _Owned()
-    # (with a cache, into its scratch arrays: the same values as ascontiguousarray's and astype's conversions)
-    f32 = np.ascontiguousarray(frame) if frame.dtype == np.float32 else None
-    if f32 is None or f32 is not frame:
-        f32 = scratch(cache, "f32", np.shape(frame), np.float32)
-        np.copyto(f32, frame, casting="unsafe")
-    work = f32
-    if median:
+    # the frame as float32, made when first needed (the maps and the ring maps read it): an 8/16-bit frame whose
+    # maps come from the cache and that holds no rings never needs it (its copy cost ~40 us per 640 x 424 frame)
+    # (with a cache, into its scratch array: the same values as ascontiguousarray's and astype's conversions)
+    made = []
+
+    def frame32():
+        if not made:
+            f = np.ascontiguousarray(frame) if frame.dtype == np.float32 else None
+            if f is None or f is not frame:
+                f = scratch(cache, "f32", np.shape(frame), np.float32)
+                np.copyto(f, frame, casting="unsafe")
+            made.append(f)
+        return made[0]
+
+    native = frame.dtype in (np.uint8, np.uint16) and frame.ndim == 2
+    if median and native:
         # the 3x3 median of 8/16-bit frames by cv2's integer kernel (2x faster than its float32 one), then
         # float32: the same values (a median selects one of its nine, and the integers are exact in float32)
-        native = frame.dtype in (np.uint8, np.uint16) and frame.ndim == 2
-        if native:
-            m8 = cv2.medianBlur(np.ascontiguousarray(frame), 3, dst=scratch(cache, "median", frame.shape, frame.dtype))
-            work = scratch(cache, "work", frame.shape, np.float32)
-            np.copyto(work, m8)
-        else:
-            work = cv2.medianBlur(f32, 3, dst=scratch(cache, "work", f32.shape, np.float32))
+        m8 = cv2.medianBlur(np.ascontiguousarray(frame), 3, dst=scratch(cache, "median", frame.shape, frame.dtype))
+        work = scratch(cache, "work", frame.shape, np.float32)
+        np.copyto(work, m8)
+    elif median:
+        work = cv2.medianBlur(frame32(), 3, dst=scratch(cache, "work", np.shape(frame), np.float32))
+    else:
+        work = frame32()
     H, W = work.shape
     ladder = sorted(set(scales) | {_SURROUND * x for x in scales})
     # (with a cache, into the arrays of the previous frame: nothing keeps the blurs beyond this call)
@@ -1005,7 +1013,7 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         owned = pool.get("owned") if pool is not None else None
         if owned is not None and c.get("rb") is not None:
             owned.give(c["rb"], c["rn"])
-        rb, rn = noise_maps(f32, tile=max(int(tile), int(math.sqrt(H * W / 256.0))), step=2,
+        rb, rn = noise_maps(frame32(), tile=max(int(tile), int(math.sqrt(H * W / 256.0))), step=2,
                             out=None if owned is None else (owned.take((H, W), np.float32),
                                                             owned.take((H, W), np.float32)))
         # the median of the frame's noise map (a full-frame median: measured once per map, for the level test
@@ -1112,7 +1120,7 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
     coarse = np.nonzero(sc >= 2.0)[0]
     if len(coarse):
         rflag = np.zeros(len(coarse), np.bool_)
-        _ring_test(f32, rb, rn, float(polarity), rows[coarse], cols[coarse], sc[coarse].astype(np.float64), rflag)
+        _ring_test(np.ascontiguousarray(frame), rb, rn, float(polarity), rows[coarse], cols[coarse], sc[coarse].astype(np.float64), rflag)
         ring[coarse] = rflag
     sig = amp[kk, np.arange(len(rows))] if len(rows) else np.zeros(0)
     reach = np.zeros(len(rows))     # ring-map candidates: radius (px) within which anything is the ring (0: others)
@@ -1120,7 +1128,7 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
         # rings: a centre vote from the rim (ptrack.image.rings), computed where the blob candidates say the
         # frame holds rings (rim pieces are ridges, faint centres sit in rings of the opposite sign)
         if ring_evidence(b1s, b2s, float(polarity), frame, rb, rn, rows, cols, kk):
-            J = polarity * (f32 - rb)
+            J = polarity * (frame32() - rb)
             need = sorted({ring_scale(R, scales) for R in RING_RADII})
             bands = {s: (blurs[s] - blurs[_SURROUND * s]) * np.float32(polarity) for s in need}
             rc = ring_maps_candidates(bands, J, rn, RING_RATE_SHARE * float(rate), scales, edge=int(edge),
