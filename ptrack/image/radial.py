@@ -211,10 +211,12 @@ def _bspline(t):
 
 
 # Gauss-Newton steps of the profile fit, and the damped steps allowed after them to a fit that has not converged
-# (a fit still moving after 12 steps oscillates about its optimum: 99 % of the fits of the image-model cases
-# converge in fewer, and damping the rest from step 12 instead of 40 cut the steps of bright centres in dark
-# rings by 30 % at the same accuracy)
-_MAX_ITER = 12
+# (a fit still moving after 8 steps oscillates about its optimum, the profile refitted to the noise as the centre
+# moves. Damping from step 12 instead of 40 cut the steps of bright centres in dark rings by 30 % at the same
+# accuracy; from step 8 instead of 12, the real movie's profile fits (a third of them still moving at step 12) took
+# 11 % less time, and the fits it changed on the image-model cases are as close to the truth: RMS error 0.2936 ->
+# 0.2939 px over 149 of them at bf z=+1.5, 0.1458 -> 0.1442 px over 110 at fluor z=+6, the rest within 1 %)
+_MAX_ITER = 8
 _DAMPED_ITER = 40
 # a fit stops at a step of the centre below this share of its standard error: the last Gauss-Newton steps shrink
 # linearly (the profile is refitted to the noise as the centre moves, at a rate ~1/2 per step), so the error left
