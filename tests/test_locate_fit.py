@@ -180,7 +180,15 @@ def test_dip_test_is_the_annulus_rule():
     for k in range(len(x0)):                        # the rule on _annulus_sums (every window pixel)
         R = int(rmax[k])
         sums, cnt = np.zeros(R + 1), np.zeros(R + 1)
-        RA._annulus_sums(img, x0[k], y0[k], R, sums, cnt)
+        RA._annulus_sums(img, x0[k], y0[k], R, sums, cnt, np.empty(2 * R + 1, np.int64))
+        # (the kernel's annuli against numpy's: every pixel of the window, b = round(r) <= R)
+        rc, cc = int(round(y0[k])), int(round(x0[k]))
+        win = (slice(max(0, rc - R), min(H, rc + R + 1)), slice(max(0, cc - R), min(W, cc + R + 1)))
+        b_np = np.floor(np.hypot(xx[win] - x0[k], yy[win] - y0[k]) + 0.5).astype(int)
+        inside = b_np <= R
+        assert np.array_equal(cnt, np.bincount(b_np[inside], minlength=R + 1)[:R + 1])
+        assert np.allclose(sums, np.bincount(b_np[inside], img[win][inside].astype(float), minlength=R + 1)[:R + 1],
+                           rtol=1e-12, atol=1e-9)
         found = False
         for b in range(2, R - 1):
             if cnt[b] == 0 or cnt[b + 2] == 0:

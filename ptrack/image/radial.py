@@ -635,16 +635,23 @@ def _as_n(v, n, dtype):
 
 
 @nb.njit(cache=True)
-def _annulus_sums(img, xc, yc, R, sums, cnt):
-    # sum and pixel count of img in 1 px annuli (b = round(r)) about (xc, yc), out to R px
+def _annulus_sums(img, xc, yc, R, sums, cnt, bins):
+    # sum and pixel count of img in 1 px annuli (b = round(r)) about (xc, yc), out to R px. Each row in two
+    # passes: the annulus of every pixel into `bins` (>= 2 R + 1 ints; the square roots do not depend on each
+    # other and vectorise), then the sums in the row's order (~20 % faster than one pass; the same sums)
     h, w = img.shape
     rc = int(round(yc))
     cc = int(round(xc))
+    j0 = max(0, cc - R)
+    j1 = min(w, cc + R + 1)
     for i in range(max(0, rc - R), min(h, rc + R + 1)):
-        for j in range(max(0, cc - R), min(w, cc + R + 1)):
-            b = int(math.sqrt((j - xc) ** 2 + (i - yc) ** 2) + 0.5)
+        for j in range(j0, j1):
+            bins[j - j0] = int(math.sqrt((j - xc) ** 2 + (i - yc) ** 2) + 0.5)
+        row = img[i]
+        for j in range(j0, j1):
+            b = bins[j - j0]
             if b <= R:
-                sums[b] += img[i, j]
+                sums[b] += row[j]
                 cnt[b] += 1
 
 
@@ -653,6 +660,10 @@ def _extent_all(img, x0, y0, noise, rmin, rmax, k_sig, gap, out):
     # per image: the largest radius (px) whose 1 px annulus mean differs from zero by more than k_sig
     # standard errors, within rmax, before `gap` consecutive annuli beyond rmin that do not (0: no such
     # stop); rmin when none does
+    rm = 0
+    for k in range(x0.shape[0]):
+        rm = max(rm, int(rmax[k]))
+    bins = np.empty(2 * rm + 1, np.int64)
     for k in range(x0.shape[0]):
         R = int(rmax[k])
         sums = np.zeros(R + 1)
@@ -662,7 +673,7 @@ def _extent_all(img, x0, y0, noise, rmin, rmax, k_sig, gap, out):
         if not (math.isfinite(xc) and math.isfinite(yc)):
             out[k] = rmin[k]
             continue
-        _annulus_sums(img, xc, yc, R, sums, cnt)
+        _annulus_sums(img, xc, yc, R, sums, cnt, bins)
         e = 0
         quiet = 0
         for b in range(R + 1):
@@ -708,22 +719,25 @@ def image_extent(img, x0, y0, noise, rmin, rmax, k_sig: float = 4.0, gap: int | 
 
 
 @nb.njit(cache=True)
-def _annulus_sums_disc(img, xc, yc, R, sums, cnt):
-    # _annulus_sums, the pixels farther than R + 1 px (whose annulus is beyond R) skipped before their square
-    # root: the same sums in the same order
+def _annulus_sums_disc(img, xc, yc, R, sums, cnt, bins):
+    # _annulus_sums (its two passes per row), the pixels farther than R + 1 px (whose annulus is beyond R) given
+    # the annulus R + 1 without their square root: the same sums in the same order
     h, w = img.shape
     rc = int(round(yc))
     cc = int(round(xc))
     lim = (R + 1.0) ** 2
+    j0 = max(0, cc - R)
+    j1 = min(w, cc + R + 1)
     for i in range(max(0, rc - R), min(h, rc + R + 1)):
         dy2 = (i - yc) ** 2
-        for j in range(max(0, cc - R), min(w, cc + R + 1)):
+        for j in range(j0, j1):
             d2 = (j - xc) ** 2 + dy2
-            if d2 > lim:
-                continue
-            b = int(math.sqrt(d2) + 0.5)
+            bins[j - j0] = int(math.sqrt(d2) + 0.5) if d2 <= lim else R + 1
+        row = img[i]
+        for j in range(j0, j1):
+            b = bins[j - j0]
             if b <= R:
-                sums[b] += img[i, j]
+                sums[b] += row[j]
                 cnt[b] += 1
 
 
@@ -736,13 +750,14 @@ def _dip_all(img, x0, y0, noise, rmax, k_sig, out):
         rm = max(rm, int(rmax[k]))
     sums = np.zeros(rm + 1)
     cnt = np.zeros(rm + 1)
+    bins = np.empty(2 * rm + 1, np.int64)
     for k in range(x0.shape[0]):
         R = int(rmax[k])
         sums[:] = 0.0
         cnt[:] = 0.0
         xc = x0[k]
         yc = y0[k]
-        _annulus_sums_disc(img, xc, yc, R, sums, cnt)
+        _annulus_sums_disc(img, xc, yc, R, sums, cnt, bins)
         found = False
         for b in range(2, R - 1):
             if cnt[b] == 0 or cnt[b + 2] == 0:
