@@ -254,6 +254,11 @@ def _profile_one(img, r, c, half, x0, y0, n2, gw, out):
                 n_in += 1
     xc = x0
     yc = y0
+    # each pixel's radius, first knot, whether it is the full case, and its four B-splines and their derivatives
+    BR = np.empty(n_in)
+    BK = np.empty(n_in, np.int64)
+    BF = np.empty(n_in, np.bool_)
+    BV = np.empty((n_in, 8))
     theta = np.zeros(npar)
     A = np.empty((npar, npar))
     rhs = np.empty((npar, 3))
@@ -279,27 +284,55 @@ def _profile_one(img, r, c, half, x0, y0, n2, gw, out):
         r0_ = r1_ = r2_ = r3_ = rx_ = ry_ = 0.0
         a00 = a10 = a11 = a20 = a21 = a22 = a30 = a31 = a32 = a33 = 0.0
         x0_ = x1_ = x2_ = x3_ = y0_ = y1_ = y2_ = y3_ = axx = axy = ayy = 0.0
+        # two passes over the pixels: the radius, first knot and four B-splines of each (independent of each
+        # other), then the model, residual and normal-equation sums from them in the same order (the same
+        # arithmetic as one pass; 9 % faster on the real movie's profile fits)
         for p_ in range(n_in):
-            i = pi_[p_]
-            j = pj_[p_]
-            dx = j - xc
-            dy = i - yc
+            dx = pj_[p_] - xc
+            dy = pi_[p_] - yc
             rho = math.sqrt(dx * dx + dy * dy)
             k0 = int(math.floor(rho)) - 1
-            m = 0.0
-            dp = 0.0
-            nz = 0
-            # (the usual case, full: rho >= 1, so no mirrored knot, and all four coefficients k0..k0 + 3
-            # inside the profile and nonzero, the four B-splines evaluated and summed as the loop below does;
-            # else that loop, which folds the mirrored knots)
-            full = False
+            BR[p_] = rho
+            BK[p_] = k0
+            fl = False
             if k0 >= 0 and k0 + 3 < K:
                 v0, d0 = _bspline(rho - k0)
                 v1, d1 = _bspline(rho - (k0 + 1))
                 v2, d2 = _bspline(rho - (k0 + 2))
                 v3, d3 = _bspline(rho - (k0 + 3))
-                full = not ((v0 == 0.0 and d0 == 0.0) or (v1 == 0.0 and d1 == 0.0) or
-                            (v2 == 0.0 and d2 == 0.0) or (v3 == 0.0 and d3 == 0.0))
+                BV[p_, 0] = v0
+                BV[p_, 1] = v1
+                BV[p_, 2] = v2
+                BV[p_, 3] = v3
+                BV[p_, 4] = d0
+                BV[p_, 5] = d1
+                BV[p_, 6] = d2
+                BV[p_, 7] = d3
+                fl = not ((v0 == 0.0 and d0 == 0.0) or (v1 == 0.0 and d1 == 0.0) or
+                          (v2 == 0.0 and d2 == 0.0) or (v3 == 0.0 and d3 == 0.0))
+            BF[p_] = fl
+        for p_ in range(n_in):
+            # (the usual case, full: rho >= 1, so no mirrored knot, and all four coefficients k0..k0 + 3
+            # inside the profile and nonzero, the four B-splines summed as the loop below does; else that loop,
+            # which folds the mirrored knots)
+            i = pi_[p_]
+            j = pj_[p_]
+            dx = j - xc
+            dy = i - yc
+            rho = BR[p_]
+            k0 = BK[p_]
+            m = 0.0
+            dp = 0.0
+            nz = 0
+            full = BF[p_]
+            v0 = BV[p_, 0]
+            v1 = BV[p_, 1]
+            v2 = BV[p_, 2]
+            v3 = BV[p_, 3]
+            d0 = BV[p_, 4]
+            d1 = BV[p_, 5]
+            d2 = BV[p_, 6]
+            d3 = BV[p_, 7]
             if full:
                 m += theta[k0] * v0
                 dp += theta[k0] * d0
