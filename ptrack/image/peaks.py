@@ -26,9 +26,9 @@ _SCAN_RUN = 32
 @nb.njit(cache=True)
 def local_maxima(z, thr, edge, signed):
     """Rows and columns (int64 arrays) of the 8-neighbour local maxima of ``z`` above ``thr``, at least ``edge``
-    px (and at least 1 px) from the border, in raster order; ties go to the first in raster order. ``signed``: maxima of ``|z|``, each
-    pixel compared with its neighbours times its own sign (bright and dark extrema in one pass). A pixel that is
-    not at or below ``thr`` (NaN included) is tested against its neighbours."""
+    px (and at least 1 px) from the border, in raster order; ties go to the first in raster order. ``signed``:
+    maxima of ``|z|``, each pixel compared with its neighbours times its own sign (bright and dark extrema in one
+    pass). A pixel that is not at or below ``thr`` (NaN included) is tested against its neighbours."""
     h, w = z.shape
     edge = max(edge, 1)         # the 8-neighbour test reads one pixel beyond each tested one
     cap = 256
