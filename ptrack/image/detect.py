@@ -1120,8 +1120,9 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
     coarse = np.nonzero(sc >= 2.0)[0]
     if len(coarse):
         rflag = np.zeros(len(coarse), np.bool_)
-        _ring_test(np.ascontiguousarray(frame), rb, rn, float(polarity), rows[coarse], cols[coarse],
-                   sc[coarse].astype(np.float64), rflag)
+        # (an 8/16-bit frame as it is, read as float32 values; any other, e.g. big-endian, as its float32 copy)
+        _ring_test(np.ascontiguousarray(frame) if native else frame32(), rb, rn, float(polarity), rows[coarse],
+                   cols[coarse], sc[coarse].astype(np.float64), rflag)
         ring[coarse] = rflag
     sig = amp[kk, np.arange(len(rows))] if len(rows) else np.zeros(0)
     reach = np.zeros(len(rows))     # ring-map candidates: radius (px) within which anything is the ring (0: others)
