@@ -949,6 +949,11 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
     if not scales or min(scales) <= 0:
         raise UserError(f"scales {scales} must be positive", "give spot widths in px")
     u = false_alarm_threshold(scales, float(rate)) if snr is None else float(snr)
+    frame = np.asarray(frame)
+    if not frame.dtype.isnative:
+        # (a big-endian frame, as a TIFF may hold it: the same values in the machine's byte order, which the
+        # numba kernels and cv2 read)
+        frame = frame.astype(frame.dtype.newbyteorder("="))
     pool = cache.setdefault("blur_pool", {}) if cache is not None else None
     if pool is not None and "owned" not in pool and _RECYCLE_BYTES > 0:
         pool["owned"] = _Owned()
@@ -1120,7 +1125,7 @@ def detect(frame, scales=None, polarity: int | None = None, snr: float | None = 
     coarse = np.nonzero(sc >= 2.0)[0]
     if len(coarse):
         rflag = np.zeros(len(coarse), np.bool_)
-        # (an 8/16-bit frame as it is, read as float32 values; any other, e.g. big-endian, as its float32 copy)
+        # (an 8/16-bit frame as it is, read as float32 values; any other as its float32 copy)
         _ring_test(np.ascontiguousarray(frame) if native else frame32(), rb, rn, float(polarity), rows[coarse],
                    cols[coarse], sc[coarse].astype(np.float64), rflag)
         ring[coarse] = rflag
