@@ -171,11 +171,18 @@ def _photons(v, offset, ig, plain):
 
 
 @nb.njit(cache=True, inline="always")
+def _photons_div(v, offset, gain, plain):
+    # a pixel's counts as photons by the division, (v - offset) / gain (the fits' starting values: background and
+    # centroid); plain (gain 1, offset 0): the value itself, (v - 0) / 1 = v exactly, without the division
+    return float(v) if plain else (v - offset) / gain
+
+
+@nb.njit(cache=True, inline="always")
 def _border_mean(img, r0, nr, c0, nc, gain, offset):
     # mean photons on the border pixels of the window rows r0..r0+nr-1, cols c0..c0+nc-1: the starting
     # background of the single and the joint fit. Only the border is visited (in raster order: the first and
-    # last rows whole, the first and last pixel of the rows between), and plain counts (gain 1, offset 0)
-    # without the division, (v - 0) / 1 = v: the same sum as testing every pixel of the window
+    # last rows whole, the first and last pixel of the rows between): the same sum as testing every pixel of the
+    # window
     plain = gain == 1.0 and offset == 0.0
     bsum = 0.0
     nb_ = 0
@@ -183,8 +190,7 @@ def _border_mean(img, r0, nr, c0, nc, gain, offset):
         row = img[r0 + i]
         step = 1 if (i == 0 or i == nr - 1) else max(nc - 1, 1)
         for j in range(0, nc, step):
-            v = row[c0 + j]
-            bsum += float(v) if plain else (v - offset) / gain
+            bsum += _photons_div(row[c0 + j], offset, gain, plain)
             nb_ += 1
     return bsum / max(nb_, 1)
 
@@ -1215,8 +1221,7 @@ def _fit_one(img, r, c, half, sigma0, gain, offset, rvar, poisson, max_iter, out
     for i in range(nr):
         row = img[r0 + i]
         for j in range(nc):
-            # (plain counts without the division, as _border_mean)
-            v = (float(row[c0 + j]) if plain else (row[c0 + j] - offset) / gain) - b0
+            v = _photons_div(row[c0 + j], offset, gain, plain) - b0
             # the excess only: a pixel at or below b0 (or NaN) adds exact zeros (the sums are >= +0), a select
             # instead of a branch that a noisy window mispredicts at every other pixel
             v = v if v > 0 else 0.0
